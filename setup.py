@@ -1,0 +1,36 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'solid_ros'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    python_requires='>=3.10',
+    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'rosbags', 'matplotlib'],
+    extras_require={
+        'test': ['pytest', 'ruff', 'mypy'],
+        # ROS 2 Jazzy client libraries from PyPI, for machines without a ROS install.
+        'ros-pypi': ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces',
+                     'ros-jazzy-rmw-fastrtps-cpp', 'colcon-common-extensions'],
+    },
+    zip_safe=True,
+    maintainer='solid_ros maintainers',
+    maintainer_email='maintainers@users.noreply.h-seed-7b7549ff.example',
+    description='SOLiD LiDAR place recognition: loop candidates with yaw for LiDAR SLAM.',
+    license='BSD-3-Clause',
+    entry_points={
+        'console_scripts': [
+            'solid_node = solid_ros.node:main',
+            'solid_replay = solid_ros.replay:main',
+            'solid_demo = solid_ros.demo:main',
+        ],
+    },
+)
