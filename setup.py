@@ -16,7 +16,7 @@ setup(
     python_requires='>=3.10',
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'mcap', 'rosbags', 'matplotlib'],
     extras_require={
-        'test': ['pytest', 'ruff', 'mypy'],
+        'test': ['pytest', 'ruff', 'mypy', 'types-PyYAML'],
         # ROS 2 Jazzy client libraries from PyPI, for machines without a ROS install.
         'ros-pypi': ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces',
                      'ros-jazzy-rmw-fastrtps-cpp', 'colcon-common-extensions'],

@@ -90,7 +90,8 @@ class _Schema:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the settings as a plain dict (YAML/JSON ready)."""
-        return dataclasses.asdict(self)  # type: ignore[call-overload]
+        out: dict[str, Any] = dataclasses.asdict(self)  # type: ignore[call-overload]
+        return out
 
     def replace(self: _C, **changes: Any) -> _C:
         """Return a validated copy with some settings changed."""

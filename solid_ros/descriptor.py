@@ -16,7 +16,7 @@ import numpy.typing as npt
 from solid_ros.config import SolidConfig
 from solid_ros.errors import SolidError
 
-__all__ = ['Descriptor', 'describe', 'preprocess', 'voxel_downsample']
+__all__ = ['Descriptor', 'describe', 'fov_mask', 'preprocess', 'voxel_downsample']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -44,7 +44,8 @@ class Descriptor:
     @property
     def ec(self) -> FloatArray:
         """Elevation counts EC[k] = sum_i REC[i, k]."""
-        return self.rec.sum(axis=0)
+        ec: FloatArray = self.rec.sum(axis=0)
+        return ec
 
 
 def _columns(points: npt.ArrayLike) -> npt.NDArray[np.floating]:
@@ -67,29 +68,39 @@ def _voxel_columns(cols: npt.NDArray[np.floating], leaf: float) -> FloatArray:
     n = cols.shape[1]
     if n == 0:
         return np.zeros((3, 0))
-    inv = cols.dtype.type(1.0 / leaf)
-    cells = [np.floor(c * inv).astype(np.int64) for c in cols]
-    ext = []
-    for c in cells:
-        c -= c.min()
-        ext.append(int(c.max()))
-    bits = [e.bit_length() for e in ext]
+    # In-place steps throughout: fresh large temporaries cost page faults that dominate here.
+    scaled = cols * cols.dtype.type(1.0 / leaf)
+    np.floor(scaled, out=scaled)
+    cells = scaled.astype(np.int64)
+    del scaled
+    cells -= cells.min(axis=1, keepdims=True)
+    bits = [int(e).bit_length() for e in cells.max(axis=1)]
     idx_bits = max(int(n - 1).bit_length(), 1)
     if sum(bits) + idx_bits <= 62:
         # Pack (cell key, point index) into one int64 so a single value sort groups the
         # cells; several times faster than np.unique(..., return_inverse=True).
-        key = (cells[0] << (bits[1] + bits[2])) | (cells[1] << bits[2]) | cells[2]
-        packed = np.sort((key << idx_bits) | np.arange(n, dtype=np.int64))
+        packed = cells[0]
+        packed <<= bits[1]
+        packed |= cells[1]
+        packed <<= bits[2]
+        packed |= cells[2]
+        packed <<= idx_bits
+        packed |= np.arange(n, dtype=np.int64)
+        packed.sort()
         order = packed & ((1 << idx_bits) - 1)
-        skey = packed >> idx_bits
+        packed >>= idx_bits
+        skey = packed
     else:  # cells too far apart to pack: slower but general
-        _, inverse = np.unique(np.stack(cells, axis=1), axis=0, return_inverse=True)
+        _, inverse = np.unique(cells.T, axis=0, return_inverse=True)
         order = np.argsort(inverse.ravel(), kind='stable')
         skey = inverse.ravel()[order]
-    start = np.flatnonzero(np.concatenate(([True], skey[1:] != skey[:-1])))
+    change = np.empty(n, dtype=bool)
+    change[0] = True
+    np.not_equal(skey[1:], skey[:-1], out=change[1:])
+    start = np.flatnonzero(change)
     sums = np.add.reduceat(np.take(cols, order, axis=1), start, axis=1, dtype=np.float64)
-    counts = np.diff(np.append(start, n))
-    return sums / counts
+    sums /= np.diff(np.append(start, n))
+    return sums
 
 
 def voxel_downsample(xyz: npt.ArrayLike, leaf: float) -> FloatArray:
@@ -108,6 +119,21 @@ def voxel_downsample(xyz: npt.ArrayLike, leaf: float) -> FloatArray:
     return _voxel_columns(cols, leaf).T
 
 
+def fov_mask(x: npt.NDArray[np.floating], y: npt.NDArray[np.floating], width_deg: float,
+             center_deg: float = 0.0) -> npt.NDArray[np.bool_]:
+    """Return which points lie in the horizontal FOV (boundary included).
+
+    A point is kept when its azimuth differs from ``center_deg`` by at most ``width_deg / 2``
+    degrees, measured CCW from +x; this matches the authors' clipped KITTI frames exactly.
+    """
+    if width_deg >= 360.0:
+        return np.ones(np.shape(x), dtype=bool)
+    az = np.degrees(np.arctan2(y, x)) - center_deg
+    rel = (az + 180.0) % 360.0 - 180.0
+    inside: npt.NDArray[np.bool_] = np.abs(rel) <= 0.5 * width_deg
+    return inside
+
+
 def _preprocess_columns(points: npt.ArrayLike, config: SolidConfig) -> FloatArray:
     cols = _columns(points)
     if cols.shape[1] == 0:
@@ -119,9 +145,8 @@ def _preprocess_columns(points: npt.ArrayLike, config: SolidConfig) -> FloatArra
     keep = (d2 > config.min_range ** 2) & (d2 < config.max_range ** 2)
     if config.fov_width_deg < 360.0:
         idx = np.flatnonzero(keep)
-        az = np.degrees(np.arctan2(y[idx], x[idx])) - config.fov_center_deg
-        rel = (az + 180.0) % 360.0 - 180.0
-        keep[idx[np.abs(rel) > 0.5 * config.fov_width_deg]] = False
+        out = ~fov_mask(x[idx], y[idx], config.fov_width_deg, config.fov_center_deg)
+        keep[idx[out]] = False
     cols = np.stack([c[keep] for c in cols]) if not keep.all() else cols
     if config.voxel_size > 0.0:
         return _voxel_columns(cols, config.voxel_size)

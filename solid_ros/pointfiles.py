@@ -47,7 +47,7 @@ def read_pcd(path: str | Path) -> npt.NDArray[np.float32]:
         types = header['TYPE']
         counts = [int(c) for c in header.get('COUNT', ['1'] * len(names))]
         npts = int(header['POINTS'][0])
-        dtype = np.dtype([(n if c == 1 else (n, c), _PCD_TYPES[(t, s)])  # type: ignore[misc]
+        dtype = np.dtype([(n if c == 1 else (n, c), _PCD_TYPES[(t, s)])
                           for n, s, t, c in zip(names, sizes, types, counts)])
     except (KeyError, ValueError, IndexError) as err:
         raise SolidError(f'{path}: unsupported PCD header ({err})') from err
