@@ -18,7 +18,8 @@ import numpy.typing as npt
 from solid_ros.errors import SolidError
 
 __all__ = [
-    'PoseError', 'PoseTrack', 'associate', 'load_reference', 'odometry_to_pose',
+    'PoseError', 'PoseTrack', 'associate', 'load_reference', 'matrix_to_quaternion',
+    'odometry_to_pose',
     'parse_stamp_ns', 'quaternion_to_matrix', 'read_kitti_poses', 'read_times',
     'read_tum_poses', 'relative_yaw', 'yaw_of',
 ]
@@ -139,6 +140,23 @@ def quaternion_to_matrix(x: float, y: float, z: float, w: float) -> FloatArray:
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ])
+
+
+def matrix_to_quaternion(rotation: npt.ArrayLike) -> tuple[float, float, float, float]:
+    """Unit quaternion (x, y, z, w) of a rotation matrix, with w >= 0."""
+    r = np.asarray(rotation, dtype=np.float64)
+    # Shepperd's method: pivot on the largest diagonal term for stability.
+    k = np.array([
+        [r[0, 0] - r[1, 1] - r[2, 2], r[1, 0] + r[0, 1], r[2, 0] + r[0, 2], r[2, 1] - r[1, 2]],
+        [r[1, 0] + r[0, 1], r[1, 1] - r[0, 0] - r[2, 2], r[2, 1] + r[1, 2], r[0, 2] - r[2, 0]],
+        [r[2, 0] + r[0, 2], r[2, 1] + r[1, 2], r[2, 2] - r[0, 0] - r[1, 1], r[1, 0] - r[0, 1]],
+        [r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1], r[0, 0] + r[1, 1] + r[2, 2]],
+    ]) / 3.0
+    vals, vecs = np.linalg.eigh(k)
+    q = vecs[:, int(np.argmax(vals))]
+    if q[3] < 0:
+        q = -q
+    return float(q[0]), float(q[1]), float(q[2]), float(q[3])
 
 
 def read_tum_poses(path: str | Path) -> tuple[IntArray, FloatArray]:

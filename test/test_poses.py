@@ -135,3 +135,15 @@ def test_associate_nearest_within_tolerance() -> None:
     assert got.tolist() == [1, 2, 0, -1, 1]
     assert associate([5], np.array([], dtype=np.int64), 10).tolist() == [-1]
     assert associate([5, 40], np.array([0]), 10).tolist() == [0, -1]
+
+
+def test_matrix_to_quaternion_round_trip() -> None:
+    from solid_ros.poses import matrix_to_quaternion
+
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        r = quaternion_to_matrix(*q)
+        back = quaternion_to_matrix(*matrix_to_quaternion(r))
+        np.testing.assert_allclose(back, r, atol=1e-9)
+    assert matrix_to_quaternion(np.eye(3)) == pytest.approx((0.0, 0.0, 0.0, 1.0))
