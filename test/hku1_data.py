@@ -10,9 +10,10 @@ import numpy.typing as npt
 
 from solid_ros.pointcloud2 import cloud_to_xyz
 
-# Livox Avia: 70.4 x 77.2 deg FOV, short range indoors/outdoors; cloud already voxelised.
+# Livox Avia: 70.4 x 77.2 deg FOV. On this bag a 0.2 m voxel grid on top of the recorded one
+# gave the best Recall@1 / F1 of the settings tried (see the detector report).
 HKU1_CONFIG = {'fov_width_deg': 360.0, 'fov_up_deg': 38.6, 'fov_down_deg': -38.6,
-               'min_range': 0.5, 'max_range': 60.0, 'max_distance': 60.0, 'voxel_size': 0.0}
+               'min_range': 0.5, 'max_range': 60.0, 'max_distance': 60.0, 'voxel_size': 0.2}
 
 
 @lru_cache(maxsize=2)
