@@ -1,0 +1,258 @@
+"""Procedural street scene made of vertical prisms, so rays intersect it in closed form.
+
+Everything stands on the ground plane z = 0 and is a vertical prism: a box with a (possibly
+yawed) rectangular footprint, or a cylinder with a circular one, each spanning heights
+[z_low, z_high]. Buildings line both sides of a grid of straight roads; poles, trees (trunk plus
+a raised crown cylinder) and parked cars make the street distinctive at close range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.errors import ConfigError
+
+__all__ = ['Scene', 'StreetGrid', 'build_scene']
+
+FloatArray = npt.NDArray[np.float64]
+
+# Reflectivity classes (the intensity channel of simulated points).
+GROUND_REFLECTIVITY = 0.15
+
+
+@dataclass(frozen=True)
+class StreetGrid:
+    """A grid of straight roads: ``nx`` roads along y at x = i * block, ``ny`` along x.
+
+    Attributes:
+        block: distance between neighbouring parallel roads, metres.
+        nx: number of north-south roads (constant x).
+        ny: number of east-west roads (constant y).
+        road_half_width: half the road width, metres; nothing is built on the road.
+    """
+
+    block: float = 80.0
+    nx: int = 4
+    ny: int = 3
+    road_half_width: float = 7.0
+
+    def __post_init__(self) -> None:
+        if not 30.0 <= self.block <= 1000.0:
+            raise ConfigError(f'block: {self.block} is out of range; allowed [30, 1000]')
+        if self.nx < 2 or self.ny < 2:
+            raise ConfigError(f'nx, ny: need at least 2 roads each way, got {self.nx}, {self.ny}')
+        if not 3.0 <= self.road_half_width <= 0.25 * self.block:
+            raise ConfigError(f'road_half_width: {self.road_half_width} is out of range; '
+                              f'allowed [3, {0.25 * self.block}]')
+
+    def node(self, i: int, j: int) -> tuple[float, float]:
+        """Return the world (x, y) of the crossing of road column ``i`` and row ``j``."""
+        return i * self.block, j * self.block
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Static world: ground plane z = 0 plus vertical box and cylinder prisms.
+
+    Attributes:
+        grid: the road layout the scene was built around.
+        boxes: (B, 7) rows cx, cy, hx, hy, yaw, z_low, z_high (half extents in the box frame).
+        box_reflectivity: (B,) intensity returned by each box, in [0, 1].
+        cylinders: (C, 5) rows cx, cy, radius, z_low, z_high.
+        cylinder_reflectivity: (C,) intensity returned by each cylinder.
+    """
+
+    grid: StreetGrid
+    boxes: FloatArray
+    box_reflectivity: FloatArray
+    cylinders: FloatArray
+    cylinder_reflectivity: FloatArray
+
+    def near(self, x: float, y: float, radius: float) -> tuple[FloatArray, FloatArray,
+                                                                FloatArray, FloatArray]:
+        """Return the boxes and cylinders (and reflectivities) reaching within ``radius``."""
+        b, c = self.boxes, self.cylinders
+        bound_b = np.hypot(b[:, 2], b[:, 3])
+        keep_b = np.hypot(b[:, 0] - x, b[:, 1] - y) - bound_b < radius
+        keep_c = np.hypot(c[:, 0] - x, c[:, 1] - y) - c[:, 2] < radius
+        return (b[keep_b], self.box_reflectivity[keep_b], c[keep_c],
+                self.cylinder_reflectivity[keep_c])
+
+    def surface_distance(self, points: npt.ArrayLike, chunk: int = 4096,
+                         ground: bool = True) -> FloatArray:
+        """Distance from each world point to the nearest surface of the scene.
+
+        Args:
+            points: (N, 3+) world coordinates.
+            chunk: points handled per vectorised step (bounds memory).
+            ground: include the ground plane z = 0 (else only boxes and cylinders count).
+
+        Returns:
+            (N,) unsigned distances in metres.
+        """
+        p = np.asarray(points, dtype=np.float64)[:, :3]
+        out: FloatArray = np.abs(p[:, 2]) if ground else np.full(len(p), np.inf)
+        if len(p) == 0:
+            return out
+        lo, hi = p[:, :2].min(axis=0), p[:, :2].max(axis=0)
+        centre = 0.5 * (lo + hi)
+        reach = 0.5 * float(np.hypot(*(hi - lo))) + 1.0
+        boxes, _, cyls, _ = self.near(float(centre[0]), float(centre[1]), reach)
+        for start in range(0, len(p), chunk):
+            q = p[start:start + chunk]
+            d = out[start:start + chunk]
+            if len(boxes):
+                d = np.minimum(d, np.abs(_box_sdf(q, boxes)).min(axis=1))
+            if len(cyls):
+                d = np.minimum(d, np.abs(_cylinder_sdf(q, cyls)).min(axis=1))
+            out[start:start + chunk] = d
+        return out
+
+
+def _prism_sdf(d_xy: FloatArray, z: FloatArray, z_low: FloatArray,
+               z_high: FloatArray) -> FloatArray:
+    """Signed distance of a vertical prism given the 2-D footprint distance ``d_xy``."""
+    zc, hz = 0.5 * (z_low + z_high), 0.5 * (z_high - z_low)
+    d_z = np.abs(z[:, None] - zc[None, :]) - hz[None, :]
+    outside = np.hypot(np.maximum(d_xy, 0.0), np.maximum(d_z, 0.0))
+    return outside + np.minimum(np.maximum(d_xy, d_z), 0.0)
+
+
+def _box_sdf(q: FloatArray, boxes: FloatArray) -> FloatArray:
+    """Signed distances (N, B) from points to boxes."""
+    cos, sin = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])
+    dx = q[:, 0:1] - boxes[None, :, 0]
+    dy = q[:, 1:2] - boxes[None, :, 1]
+    lx = np.abs(cos * dx + sin * dy) - boxes[None, :, 2]
+    ly = np.abs(-sin * dx + cos * dy) - boxes[None, :, 3]
+    d_xy = np.hypot(np.maximum(lx, 0.0), np.maximum(ly, 0.0)) + np.minimum(
+        np.maximum(lx, ly), 0.0)
+    return _prism_sdf(d_xy, q[:, 2], boxes[:, 5], boxes[:, 6])
+
+
+def _cylinder_sdf(q: FloatArray, cyls: FloatArray) -> FloatArray:
+    """Signed distances (N, C) from points to vertical cylinders."""
+    d_xy = np.hypot(q[:, 0:1] - cyls[None, :, 0], q[:, 1:2] - cyls[None, :, 1]) - cyls[None, :, 2]
+    return _prism_sdf(d_xy, q[:, 2], cyls[:, 3], cyls[:, 4])
+
+
+def _frontage(rng: np.random.Generator, length: float) -> list[tuple[float, float]]:
+    """Split a street side of ``length`` metres into (start, width) building plots."""
+    plots = []
+    pos = float(rng.uniform(0.0, 6.0))
+    while True:
+        width = float(rng.uniform(8.0, 28.0))
+        if pos + width > length:
+            break
+        plots.append((pos, width))
+        # Mostly narrow gaps, sometimes an open lot: both make places distinctive.
+        gap = rng.uniform(15.0, 30.0) if rng.random() < 0.15 else rng.uniform(1.0, 8.0)
+        pos += width + float(gap)
+    return plots
+
+
+def _side_frame(x0: float, x1: float, y0: float, y1: float,
+                side: int) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """Origin, along-street unit vector, inward normal and length of one side of a cell."""
+    if side == 0:  # south side, facing the road below
+        return np.array([x0, y0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), x1 - x0
+    if side == 1:  # north
+        return np.array([x0, y1]), np.array([1.0, 0.0]), np.array([0.0, -1.0]), x1 - x0
+    if side == 2:  # west
+        return np.array([x0, y0]), np.array([0.0, 1.0]), np.array([1.0, 0.0]), y1 - y0
+    return np.array([x1, y0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), y1 - y0
+
+
+def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
+    """Build a random street scene around ``grid``; the same seed gives the same scene.
+
+    Every city block (including one ring of blocks outside the grid) gets buildings of random
+    width, depth, set-back, height and occasional yaw along each of its four street sides;
+    every road edge gets poles, rows of trees on some streets and parked cars.
+
+    Args:
+        grid: road layout; ``StreetGrid()`` when omitted.
+        seed: seed of the numpy Generator that places everything.
+
+    Returns:
+        The scene.
+    """
+    g = grid if grid is not None else StreetGrid()
+    rng = np.random.default_rng([seed, 0x5CE7E])
+    w = g.road_half_width
+    boxes: list[list[float]] = []
+    box_refl: list[float] = []
+    cyls: list[list[float]] = []
+    cyl_refl: list[float] = []
+
+    for i in range(-1, g.nx):
+        for j in range(-1, g.ny):
+            x0, y0 = i * g.block + w, j * g.block + w
+            x1, y1 = (i + 1) * g.block - w, (j + 1) * g.block - w
+            half_depth = 0.5 * min(x1 - x0, y1 - y0)
+            for side in range(4):
+                origin, along, inward, length = _side_frame(x0, x1, y0, y1, side)
+                for start, width in _frontage(rng, length):
+                    setback = rng.uniform(1.5, 7.0)
+                    depth = rng.uniform(8.0, max(9.0, min(22.0, half_depth - setback)))
+                    height = float(np.exp(rng.uniform(np.log(4.0), np.log(35.0))))
+                    centre = origin + along * (start + 0.5 * width) + inward * (
+                        setback + 0.5 * depth)
+                    yaw = float(np.arctan2(along[1], along[0]))
+                    if rng.random() < 0.2:
+                        yaw += np.radians(rng.uniform(-10.0, 10.0))
+                    boxes.append([centre[0], centre[1], 0.5 * width, 0.5 * depth, yaw, 0.0,
+                                  height])
+                    box_refl.append(float(rng.uniform(0.2, 0.9)))
+
+    # Street furniture along both edges of every road segment of the grid.
+    for horizontal in (True, False):
+        count, span = (g.ny, g.nx) if horizontal else (g.nx, g.ny)
+        for k in range(count):
+            for seg in range(span - 1):
+                for edge in (-1.0, 1.0):
+                    _furnish(rng, g, horizontal, k * g.block, seg * g.block + w,
+                             (seg + 1) * g.block - w, edge, boxes, box_refl, cyls, cyl_refl)
+
+    return Scene(grid=g, boxes=np.asarray(boxes, dtype=np.float64).reshape(-1, 7),
+                 box_reflectivity=np.asarray(box_refl, dtype=np.float64),
+                 cylinders=np.asarray(cyls, dtype=np.float64).reshape(-1, 5),
+                 cylinder_reflectivity=np.asarray(cyl_refl, dtype=np.float64))
+
+
+def _furnish(rng: np.random.Generator, g: StreetGrid, horizontal: bool, road: float,
+             start: float, end: float, edge: float, boxes: list[list[float]],
+             box_refl: list[float], cyls: list[list[float]], cyl_refl: list[float]) -> None:
+    """Add poles, trees and parked cars along one edge of one road segment."""
+    w = g.road_half_width
+
+    def at(s: float, offset: float) -> tuple[float, float]:
+        return (s, road + edge * offset) if horizontal else (road + edge * offset, s)
+
+    s = start + rng.uniform(0.0, 20.0)
+    while s < end:  # poles (lamp posts, signs)
+        x, y = at(s, w + 0.6)
+        cyls.append([x, y, rng.uniform(0.1, 0.2), 0.0, rng.uniform(4.0, 9.0)])
+        cyl_refl.append(float(rng.uniform(0.5, 1.0)))
+        s += rng.uniform(15.0, 40.0)
+    if rng.random() < 0.5:  # a row of trees on some streets
+        s = start + rng.uniform(2.0, 10.0)
+        while s < end:
+            x, y = at(s, w + 1.8)
+            trunk = rng.uniform(2.2, 3.5)
+            cyls.append([x, y, rng.uniform(0.15, 0.35), 0.0, trunk])
+            cyls.append([x, y, rng.uniform(1.2, 2.8), trunk, trunk + rng.uniform(2.0, 5.0)])
+            cyl_refl.extend([0.3, float(rng.uniform(0.05, 0.3))])
+            s += rng.uniform(7.0, 16.0)
+    s = start + rng.uniform(0.0, 15.0)
+    while s < end - 5.0:  # parked cars in the kerb lane
+        if rng.random() < 0.5:
+            x, y = at(s, w - 1.2)
+            yaw = (0.0 if horizontal else 0.5 * np.pi) + np.radians(rng.uniform(-4.0, 4.0))
+            boxes.append([x, y, rng.uniform(2.0, 2.5), rng.uniform(0.85, 1.0), yaw, 0.3,
+                          rng.uniform(1.3, 1.8)])
+            box_refl.append(float(rng.uniform(0.3, 1.0)))
+        s += rng.uniform(6.0, 12.0)

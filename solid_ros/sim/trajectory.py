@@ -1,0 +1,188 @@
+"""A drive through the street grid that revisits places, with ground-truth revisit labels.
+
+The default route (grid crossings as (column, row) indices) first drives one loop, then
+returns to stretches of it in the same direction, crosses earlier crossings from other
+streets, and ends by driving two earlier blocks in the reverse direction. Every road segment
+gets its own lane offset and a gentle weave, and the heading carries a small smooth jitter, so
+a revisit is never the same pose twice: the sensor is metres to the side and degrees off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.errors import ConfigError
+from solid_ros.sim.scene import StreetGrid
+
+__all__ = ['DEFAULT_ROUTE', 'LABELS', 'Trajectory', 'build_trajectory', 'revisit_labels']
+
+FloatArray = npt.NDArray[np.float64]
+
+# Needs a grid of at least 4 x 3 roads.
+DEFAULT_ROUTE: tuple[tuple[int, int], ...] = (
+    (0, 0), (2, 0), (2, 1), (0, 1), (0, 0),  # first loop: everything new
+    (1, 0),  # same direction as the loop
+    (1, 1),  # new street, reaching a crossing of the loop from the south
+    (1, 2), (0, 2), (0, 1),  # new, reaching a loop crossing from the north
+    (0, 0), (2, 0),  # same direction again
+    (3, 0), (3, 1), (2, 1),  # new
+    (1, 1),  # same direction
+    (1, 0), (0, 0),  # reverse: earlier blocks driven the other way
+)
+
+LABELS = ('new', 'same', 'cross', 'reverse')
+
+_STEP = 0.25  # metres between samples of the fine path
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Planar sensor poses along the route, one per scan.
+
+    Attributes:
+        xy: (N, 2) sensor positions in the world, metres.
+        yaw: (N,) sensor headings, radians CCW from world +x.
+        distance: (N,) distance driven so far, metres.
+        label: (N,) per scan 'new', 'same' (an earlier place, similar heading), 'cross'
+            (an earlier place, heading differs by 45-135 degrees) or 'reverse'.
+        revisit_of: (N,) index of the nearest earlier scan of the same place, -1 for 'new'.
+    """
+
+    xy: FloatArray
+    yaw: FloatArray
+    distance: FloatArray
+    label: npt.NDArray[np.str_]
+    revisit_of: npt.NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return len(self.yaw)
+
+
+def _smooth(values: FloatArray, window: int) -> FloatArray:
+    """Moving average along axis 0 with edge padding (keeps the length)."""
+    if window <= 1:
+        return values
+    pad = window // 2
+    padded = np.concatenate([np.repeat(values[:1], pad, axis=0), values,
+                             np.repeat(values[-1:], window - 1 - pad, axis=0)])
+    csum = np.cumsum(padded, axis=0)
+    csum = np.concatenate([np.zeros_like(csum[:1]), csum])
+    out: FloatArray = (csum[window:] - csum[:-window]) / window
+    return out
+
+
+def build_trajectory(grid: StreetGrid, seed: int = 0, spacing: float = 2.0,
+                     route: tuple[tuple[int, int], ...] = DEFAULT_ROUTE,
+                     revisit_radius: float = 6.0, exclude_distance: float = 60.0) -> Trajectory:
+    """Sample sensor poses every ``spacing`` metres along ``route``.
+
+    Args:
+        grid: road layout the route's crossing indices refer to.
+        seed: seed of the lane offsets, weave and heading jitter.
+        spacing: distance between scans, metres.
+        route: crossings to drive through, as (column, row) indices; consecutive crossings
+            share a column or a row.
+        revisit_radius: a scan revisits an earlier one closer than this, metres.
+        exclude_distance: earlier scans driven less than this many metres before do not count
+            as revisits (they are just the previous scans).
+
+    Returns:
+        The trajectory with its revisit labels.
+
+    Raises:
+        ConfigError: the route leaves the grid or has a diagonal step, or a value is out of
+            range.
+    """
+    if not 0.25 <= spacing <= 50.0:
+        raise ConfigError(f'spacing: {spacing} is out of range; allowed [0.25, 50]')
+    if len(route) < 2:
+        raise ConfigError('route: needs at least two crossings')
+    for (i0, j0), (i1, j1) in zip(route[:-1], route[1:]):
+        if not (0 <= i1 < grid.nx and 0 <= j1 < grid.ny and 0 <= i0 < grid.nx
+                and 0 <= j0 < grid.ny):
+            raise ConfigError(f'route: crossing {(i1, j1)} or {(i0, j0)} is outside the '
+                              f'{grid.nx} x {grid.ny} grid')
+        if (i0 != i1) == (j0 != j1):
+            raise ConfigError(f'route: step {(i0, j0)} -> {(i1, j1)} is not along one road')
+    rng = np.random.default_rng([seed, 0x7AC])
+
+    # Fine centre line, one sample every _STEP metres, with the segment index of each sample.
+    pieces, seg_ids = [], []
+    for k, (a, b) in enumerate(zip(route[:-1], route[1:])):
+        p0, p1 = np.array(grid.node(*a)), np.array(grid.node(*b))
+        n = max(int(round(np.linalg.norm(p1 - p0) / _STEP)), 1)
+        t = np.arange(n) / n
+        pieces.append(p0 + t[:, None] * (p1 - p0))
+        seg_ids.append(np.full(n, k))
+    pieces.append(np.array([grid.node(*route[-1])]))
+    seg_ids.append(np.array([len(route) - 2]))
+    centre = np.concatenate(pieces)
+    seg = np.concatenate(seg_ids)
+
+    # Round the corners (turn radius of a few metres) and derive the driving direction.
+    window = int(round(10.0 / _STEP))
+    centre = _smooth(centre, window)
+    tangent = np.gradient(centre, axis=0)
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+    left = np.c_[-tangent[:, 1], tangent[:, 0]]
+    s_fine = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(centre, axis=0), axis=1))]
+
+    # Per segment: right-hand lane offset, weave amplitude, wavelength and phase.
+    n_seg = len(route) - 1
+    lane = rng.uniform(1.0, 3.5, n_seg)
+    amp = rng.uniform(0.0, 1.0, n_seg)
+    wavelength = rng.uniform(30.0, 70.0, n_seg)
+    phase = rng.uniform(0.0, 2.0 * np.pi, n_seg)
+    lateral = -lane[seg] + amp[seg] * np.sin(2.0 * np.pi * s_fine / wavelength[seg] + phase[seg])
+    lateral = _smooth(lateral, window)
+    xy_fine = centre + lateral[:, None] * left
+    step = np.gradient(xy_fine, axis=0)
+    heading = np.unwrap(np.arctan2(step[:, 1], step[:, 0]))
+    # Smooth heading jitter of a couple of degrees (vehicle not aligned with its path).
+    jitter = _smooth(rng.normal(0.0, 1.0, len(heading)), int(round(15.0 / _STEP)))
+    jitter *= np.radians(2.5) / max(float(np.std(jitter)), 1e-12)
+    heading = heading + jitter
+
+    take = np.searchsorted(s_fine, np.arange(0.0, s_fine[-1], spacing))
+    xy = xy_fine[take]
+    yaw = np.angle(np.exp(1j * heading[take]))
+    distance = s_fine[take]
+    label, revisit_of = revisit_labels(xy, yaw, distance, revisit_radius, exclude_distance)
+    return Trajectory(xy=xy, yaw=yaw, distance=distance, label=label, revisit_of=revisit_of)
+
+
+def revisit_labels(xy: FloatArray, yaw: FloatArray, distance: FloatArray,
+                   radius: float = 6.0, exclude_distance: float = 60.0
+                   ) -> tuple[npt.NDArray[np.str_], npt.NDArray[np.int64]]:
+    """Label each pose by its nearest earlier pose of the same place.
+
+    Args:
+        xy: (N, 2) positions.
+        yaw: (N,) headings, radians.
+        distance: (N,) distance driven, metres (non-decreasing).
+        radius: places closer than this are the same place, metres.
+        exclude_distance: earlier poses within this driven distance are ignored, metres.
+
+    Returns:
+        Labels ('new', 'same', 'cross', 'reverse') and the index of the matched earlier pose
+        (-1 for 'new').
+    """
+    n = len(xy)
+    label = np.full(n, 'new', dtype='<U7')
+    match = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        earlier = int(np.searchsorted(distance, distance[i] - exclude_distance, side='right'))
+        if earlier == 0:
+            continue
+        d = np.hypot(*(xy[:earlier] - xy[i]).T)
+        j = int(np.argmin(d))
+        if d[j] >= radius:
+            continue
+        turn = abs(float(np.angle(np.exp(1j * (yaw[i] - yaw[j])))))
+        match[i] = j
+        label[i] = ('same' if turn <= np.radians(45.0) else
+                    'reverse' if turn >= np.radians(135.0) else 'cross')
+    return label, match
