@@ -364,7 +364,8 @@ class DescriptorDatabase:
         slots = seqs % self.capacity
         has_r = (self._flags[slots] & _HAS_R) != 0
         seqs, slots = seqs[has_r], slots[has_r]
-        dist = np.clip(1.0 - self._r[slots].astype(np.float64) @ q, 0.0, 2.0)
+        # Row-wise sum, not BLAS: the result must not depend on which rows are gathered.
+        dist = np.clip(1.0 - (self._r[slots].astype(np.float64) * q).sum(axis=1), 0.0, 2.0)
         order = np.lexsort((seqs, dist))[:k]
         return [Match(int(seqs[i]), int(self._index[slots[i]]), int(self._session[slots[i]]),
                       int(self._stamp[slots[i]]), float(dist[i])) for i in order]
@@ -408,15 +409,9 @@ class DescriptorDatabase:
         first = max(0, n - self.capacity)
         count = n - first
         slots = np.arange(self._next, self._next + count) % self.capacity
-        r = np.asarray(arrays['r_solid'], dtype=np.float64)[first:]
-        norms = np.linalg.norm(r, axis=1)
-        has_r = np.isfinite(norms) & (norms > 0.0)
-        r_unit = np.where(has_r[:, None], r / np.where(has_r, norms, 1.0)[:, None],
-                          self._sentinel[None, :])
-        a = np.asarray(arrays['a_solid'], dtype=np.float64)[first:]
-        a_norms = np.linalg.norm(a, axis=1)
-        a_ok = np.isfinite(a_norms) & (a_norms > 0.0)
-        a_unit = np.where(a_ok[:, None], a / np.where(a_ok, a_norms, 1.0)[:, None], 0.0)
+        r_unit, has_r = _unit_rows(np.asarray(arrays['r_solid'])[first:])
+        r_unit[~has_r] = self._sentinel
+        a_unit, _ = _unit_rows(np.asarray(arrays['a_solid'])[first:])
         poses = np.asarray(arrays['poses'], dtype=np.float32)[first:]
         has_pose = np.all(np.isfinite(poses), axis=1)
         self._r[slots] = r_unit
@@ -430,3 +425,20 @@ class DescriptorDatabase:
         self._size = min(self._size + count, self.capacity)
         self._session_start = self._next
         self._maybe_rebuild(force=True)
+
+
+def _unit_rows(rows: npt.NDArray[np.generic]) -> tuple[npt.NDArray[np.float32],
+                                                        npt.NDArray[np.bool_]]:
+    """Rows scaled to unit length as float32, and which rows were non-zero and finite.
+
+    Rows already unit to float32 precision (as saved) are kept bit for bit, so a loaded
+    database answers exactly like the one that was saved.
+    """
+    r64 = rows.astype(np.float64)
+    norms = np.linalg.norm(r64, axis=1)
+    ok = np.isfinite(norms) & (norms > 0.0)
+    rescale = ok & (np.abs(norms - 1.0) > 1e-5)
+    out = rows.astype(np.float32)
+    out[rescale] = (r64[rescale] / norms[rescale, None]).astype(np.float32)
+    out[~ok] = 0.0
+    return out, ok
