@@ -118,6 +118,8 @@ class LoopDetector:
         self.database = database if database is not None else DescriptorDatabase(self._config)
         self.last_descriptor: Descriptor | None = None
         self.last_was_keyframe = False
+        # Best stored match of the last query, accepted or not (offline PR curves need it).
+        self.last_best: LoopCandidate | None = None
         self._kf_stamp: int | None = None
         self._kf_pose: npt.NDArray[np.float64] | None = None
         self._last_loop_query: int | None = None
@@ -197,6 +199,7 @@ class LoopDetector:
         vec = pose_to_vector(pose) if pose is not None else None
         if not self.is_keyframe(stamp, vec):
             self.last_was_keyframe = False
+            self.last_best = None
             return []
         return self.process_descriptor(describe(points, self._config), stamp, vec)
 
@@ -215,9 +218,6 @@ class LoopDetector:
     def _query(self, desc: Descriptor, stamp: int) -> list[LoopCandidate]:
         cfg = self._config
         q_index = self.database.session_count
-        if (cfg.min_loop_gap and self._last_loop_query is not None
-                and q_index - self._last_loop_query < cfg.min_loop_gap):
-            return []
         hood = cfg.margin_neighbourhood
         hits = self.database.search(desc.r_solid, stamp, cfg.num_candidates + 2 * hood + 1,
                                     exclude_frames=cfg.exclude_recent_frames,
@@ -225,6 +225,19 @@ class LoopDetector:
 
         def same_place(a: Match, b: Match) -> bool:
             return a.session == b.session and abs(a.index - b.index) <= hood
+
+        self.last_best = None
+        if hits:
+            top = hits[0]
+            self.last_best = LoopCandidate(
+                query_index=q_index, match_index=top.index, query_stamp_ns=stamp,
+                match_stamp_ns=top.stamp_ns, match_session=top.session, distance=top.distance,
+                yaw=estimate_yaw(desc.a_solid, self.database.a_solid(top.seq)),
+                margin=min((o.distance for o in hits if not same_place(o, top)),
+                           default=math.inf) - top.distance)
+        if (cfg.min_loop_gap and self._last_loop_query is not None
+                and q_index - self._last_loop_query < cfg.min_loop_gap):
+            return []
 
         taken: list[tuple[Match, float]] = []
         for hit in hits[:cfg.num_candidates]:
