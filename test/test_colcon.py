@@ -1,0 +1,148 @@
+"""Build the package with colcon in a temporary workspace and run the installed solid_node.
+
+Each shipped parameter file must start the executable and have it answer over DDS; a bad
+file must make it exit non-zero naming the parameter.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rcl_interfaces.srv import GetParameters  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+
+from solid_ros.config import SolidConfig  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = sorted((ROOT / 'config').glob('*.yaml'))
+BIN = Path(sys.executable).parent
+COLCON = BIN / 'colcon'
+PACKAGE_ITEMS = ('package.xml', 'setup.py', 'setup.cfg', 'resource', 'solid_ros', 'config')
+
+
+@pytest.fixture(scope='module')
+def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """colcon-build a copy of the package; return the install prefix of solid_ros."""
+    if not COLCON.exists():
+        pytest.skip(f'colcon not found next to {sys.executable}')
+    ws = tmp_path_factory.mktemp('ws')
+    src = ws / 'src' / 'solid_ros'
+    src.mkdir(parents=True)
+    for item in PACKAGE_ITEMS:
+        path = ROOT / item
+        if path.is_dir():
+            shutil.copytree(path, src / item, ignore=shutil.ignore_patterns('__pycache__'))
+        else:
+            shutil.copy2(path, src / item)
+    env = dict(os.environ, PATH=f'{BIN}{os.pathsep}{os.environ.get("PATH", "")}')
+    proc = subprocess.run([str(COLCON), 'build', '--base-paths', 'src'], cwd=ws, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    prefix = ws / 'install' / 'solid_ros'
+    assert (prefix / 'lib' / 'solid_ros' / 'solid_node').is_file()
+    assert (prefix / 'share' / 'solid_ros' / 'config' / 'avia.yaml').is_file()
+    return prefix
+
+
+def _env(prefix: Path, domain: int) -> dict[str, str]:
+    site = next((prefix / 'lib').glob('python3*/site-packages'))
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain),
+                PYTHONPATH=os.pathsep.join([str(site), os.environ.get('PYTHONPATH', '')]),
+                AMENT_PREFIX_PATH=str(prefix), PYTHONUNBUFFERED='1')
+
+
+@pytest.fixture()
+def domain() -> Iterator[int]:
+    old = os.environ.get('ROS_DOMAIN_ID')
+    value = random.randint(1, 100)
+    os.environ['ROS_DOMAIN_ID'] = str(value)
+    yield value
+    if old is None:
+        os.environ.pop('ROS_DOMAIN_ID', None)
+    else:
+        os.environ['ROS_DOMAIN_ID'] = old
+
+
+def _stop(proc: subprocess.Popen[str]) -> tuple[int, str]:
+    proc.send_signal(signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+    return proc.returncode, err
+
+
+@pytest.mark.parametrize('config', CONFIGS, ids=[p.name for p in CONFIGS])
+def test_installed_node_starts_with_each_yaml(installed: Path, domain: int,
+                                              config: Path) -> None:
+    exe = installed / 'lib' / 'solid_ros' / 'solid_node'
+    proc = subprocess.Popen([str(exe), '--ros-args', '--params-file', str(config)],
+                            env=_env(installed, domain), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = Node('solid_colcon_probe', context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        diags: list[DiagnosticArray] = []
+        node.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 10)
+        client = node.create_client(GetParameters, '/solid_node/get_parameters')
+        deadline = time.monotonic() + 60.0
+        while not client.service_is_ready() and proc.poll() is None:
+            assert time.monotonic() < deadline, 'solid_node did not come up'
+            executor.spin_once(timeout_sec=0.1)
+        assert proc.poll() is None, proc.communicate()[1]
+        fut = client.call_async(GetParameters.Request(names=['fov_width_deg', 'max_range']))
+        executor.spin_until_future_complete(fut, timeout_sec=30.0)
+        values = [v.double_value for v in fut.result().values]
+        want = SolidConfig.from_yaml(config)
+        assert values == [want.fov_width_deg, want.max_range]
+        while not diags:
+            assert time.monotonic() < deadline, 'no diagnostics from solid_node'
+            executor.spin_once(timeout_sec=0.1)
+        assert diags[0].status[0].name.startswith('solid_node')
+    finally:
+        code, err = _stop(proc)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    assert code == 0, err
+
+
+def test_installed_node_refuses_bad_parameter_file(installed: Path, domain: int,
+                                                   tmp_path: Path) -> None:
+    exe = installed / 'lib' / 'solid_ros' / 'solid_node'
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('solid_node:\n  ros__parameters:\n    distance_threshold: 3.0\n')
+    proc = subprocess.run([str(exe), '--ros-args', '--params-file', str(bad)],
+                          env=_env(installed, domain), capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode != 0
+    assert 'distance_threshold' in proc.stderr and '[0.0, 2.0]' in proc.stderr
+    assert 'Traceback' not in proc.stderr
+
+    wrong_type = tmp_path / 'int.yaml'
+    wrong_type.write_text('solid_node:\n  ros__parameters:\n    fov_width_deg: 90\n')
+    proc = subprocess.run([str(exe), '--ros-args', '--params-file', str(wrong_type)],
+                          env=_env(installed, domain), capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode != 0
+    assert 'fov_width_deg' in proc.stderr and '90.0' in proc.stderr
+    assert 'Traceback' not in proc.stderr
