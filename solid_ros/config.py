@@ -193,9 +193,11 @@ class SolidConfig(_Schema):
     # Database (fixed once running).
     capacity: int = _p(100000, 'Stored scans; the oldest is evicted beyond this', low=1,
                        high=10_000_000, read_only=True)
-    search: str = _p('kdtree', 'Search mode: exact vectorised brute force or kd-tree',
+    search: str = _p('brute', 'Search mode: exact vectorised brute force (faster for 40-bin '
+                     'descriptors) or kd-tree',
                      choices=('kdtree', 'brute'), read_only=True)
-    kdtree_rebuild_every: int = _p(64, 'Rebuild the kd-tree after this many insertions',
+    kdtree_rebuild_every: int = _p(64, 'Rebuild the kd-tree after at least this many '
+                                   'insertions (and 1/16 of its size)',
                                    low=1, high=1_000_000, read_only=True)
     num_candidates: int = _p(10, 'Top-k candidates re-ranked by exact cosine distance',
                              low=1, high=1000)
