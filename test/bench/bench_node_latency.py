@@ -1,0 +1,179 @@
+"""End-to-end latency of solid_node: PointCloud2 published -> loop-candidate message received.
+
+Run: .venv/bin/python test/bench/bench_node_latency.py [--duration 30] [--rates 10,15,20,30]
+
+The node runs in its own process (``python -m solid_ros.node``, HDL-64 preset) with settings
+that make every scan a query with one candidate (exclude_recent_frames 0, threshold 2.0), so
+each published cloud yields one candidate message. The publisher sends KITTI scan 313
+(~121k points), rotated and jittered per message, at 10 Hz for ``--duration`` seconds and
+prints median / p95 / max latency and the skipped-cloud count from /diagnostics; then it
+steps the rate up (``--rates``) to find the highest rate sustained without skips.
+Timings are noisy on a shared machine; re-run on an idle one for published figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import array
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+DATA = ROOT.parent / 'shared' / 'data'
+NS = 1_000_000_000
+
+
+def _variants(points: np.ndarray, count: int, seed: int = 0) -> list[bytes]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        a = rng.uniform(-np.pi, np.pi)
+        rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0],
+                        [0.0, 0.0, 1.0]])
+        pts = points @ rot.T + rng.normal(scale=0.02, size=points.shape)
+        out.append(np.ascontiguousarray(pts, dtype='<f4').tobytes())
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--duration', type=float, default=30.0, help='seconds at 10 Hz')
+    parser.add_argument('--rates', default='15,20,30,40,60,80',
+                        help='rates (Hz) tried after 10 Hz to find the sustained maximum')
+    parser.add_argument('--step-duration', type=float, default=10.0,
+                        help='seconds per stepped rate')
+    args = parser.parse_args()
+    pcd = DATA / 'kitti' / 'pcd' / '000313.pcd'
+    if not pcd.is_file():
+        print(f'KITTI scan not found at {pcd}; nothing to measure', file=sys.stderr)
+        return 1
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2, PointField
+    from std_msgs.msg import Float64MultiArray
+
+    from solid_ros.candidates import decode_candidates
+    from solid_ros.pointfiles import read_pcd
+
+    points = read_pcd(pcd).astype(np.float64)
+    variants = _variants(points, 16)
+    domain = str(random.randint(1, 100))
+    os.environ['ROS_DOMAIN_ID'] = domain
+    node_cmd = [sys.executable, '-m', 'solid_ros.node', '--ros-args', '--params-file',
+                str(ROOT / 'config' / 'hdl64.yaml'), '-p', 'exclude_recent_frames:=0',
+                '-p', 'distance_threshold:=2.0', '-p', 'qos_reliability:=reliable',
+                '-p', 'use_odom:=false', '-p', 'diagnostics_period_sec:=0.5']
+    proc = subprocess.Popen(node_cmd, env=dict(os.environ), stderr=subprocess.PIPE, text=True)
+
+    rclpy.init()
+    node = Node('solid_latency_bench')
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(PointCloud2, '/points', qos)
+    sent: dict[int, float] = {}
+    latency: dict[int, float] = {}
+    diag: dict[str, str] = {}
+    lock = threading.Lock()
+
+    def on_cands(msg: Float64MultiArray) -> None:
+        now = time.perf_counter()
+        for c in decode_candidates(msg):
+            with lock:
+                t0 = sent.get(int(c['query_stamp_ns']))
+                if t0 is not None:
+                    latency[int(c['query_stamp_ns'])] = (now - t0) * 1e3
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for s in msg.status:
+            if s.name.startswith('solid_node'):
+                diag.update({kv.key: kv.value for kv in s.values})
+
+    node.create_subscription(Float64MultiArray, '/solid_node/loop_candidates', on_cands, 100)
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+
+    msg = PointCloud2(height=1, width=len(points), point_step=12, row_step=12 * len(points),
+                      is_dense=True)
+    msg.header.frame_id = 'velodyne'
+    msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                  for i, n in enumerate('xyz')]
+    datas = [array.array('B', v) for v in variants]
+    stamp = [1_000 * NS]
+
+    def run(rate: float, duration: float) -> tuple[np.ndarray, int, int]:
+        with lock:
+            sent.clear()
+            latency.clear()
+        skipped0 = int(diag.get('clouds_skipped', 0))
+        n = int(rate * duration)
+        start = time.perf_counter()
+        for i in range(n):
+            target = start + i / rate
+            while (wait := target - time.perf_counter()) > 0:
+                time.sleep(wait)
+            stamp[0] += NS // int(rate)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp[0], NS)
+            msg.data = datas[i % len(datas)]
+            with lock:
+                sent[stamp[0]] = time.perf_counter()
+            pub.publish(msg)
+        time.sleep(1.5)  # let the last results and a diagnostics message arrive
+        with lock:
+            lat = np.array(sorted(latency.values()))
+            missing = len(sent) - len(latency)
+        return lat, int(diag.get('clouds_skipped', 0)) - skipped0, missing
+
+    try:
+        deadline = time.monotonic() + 60
+        while pub.get_subscription_count() == 0:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                print('solid_node did not start:', proc.stderr.read() if proc.stderr else '',
+                      file=sys.stderr)
+                return 1
+            time.sleep(0.1)
+        run(10.0, 2.0)  # warm-up (imports, kd-tree, DDS discovery)
+        lat, skipped, missing = run(10.0, args.duration)
+        print(f'10 Hz, {len(points)} points/cloud, {args.duration:.0f} s: '
+              f'{len(lat)} candidate messages; latency median {np.median(lat):.1f} ms, '
+              f'p95 {np.percentile(lat, 95):.1f} ms, max {lat.max():.1f} ms; '
+              f'skipped {skipped}, without result {missing}')
+        best = 10.0 if skipped == 0 and missing == 0 else 0.0
+        for rate in [float(r) for r in args.rates.split(',') if r]:
+            lat, skipped, missing = run(rate, args.step_duration)
+            ok = skipped == 0 and missing == 0
+            print(f'{rate:5.1f} Hz: median {np.median(lat):.1f} ms, p95 '
+                  f'{np.percentile(lat, 95):.1f} ms, skipped {skipped}, without result '
+                  f'{missing} -> {"sustained" if ok else "falls behind"}')
+            if not ok:
+                break
+            best = rate
+        print(f'highest sustained rate without skips: {best:.0f} Hz '
+              f'(processing p50 {diag.get("processing_ms_p50")} ms in the node)')
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
