@@ -321,7 +321,8 @@ def evaluate(positions: npt.ArrayLike, best_match: npt.ArrayLike, best_distance:
              best_yaw: npt.ArrayLike, accepted: npt.ArrayLike, *, radius: float = 5.0,
              rotations: npt.ArrayLike | None = None, max_heading_deg: float | None = None,
              stored: npt.ArrayLike | None = None, stamps_ns: npt.ArrayLike | None = None,
-             exclude_frames: int = 0, exclude_sec: float = 0.0) -> Evaluation:
+             exclude_frames: int = 0, exclude_sec: float = 0.0,
+             foreign: npt.ArrayLike | None = None) -> Evaluation:
     """Evaluate every query's best match against reference poses.
 
     Args:
@@ -335,6 +336,8 @@ def evaluate(positions: npt.ArrayLike, best_match: npt.ArrayLike, best_distance:
         max_heading_deg: optional heading gate of the ground truth.
         stored, stamps_ns, exclude_frames, exclude_sec: the detector's eligibility rules
             (see :func:`ground_truth`).
+        foreign: (N,) best match lies outside these poses (e.g. a loaded session); such a
+            match counts, and always as false.
     """
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = len(pos)
@@ -350,7 +353,9 @@ def evaluate(positions: npt.ArrayLike, best_match: npt.ArrayLike, best_distance:
     truth = ground_truth(pos, radius=radius, stored=stored, stamps_ns=stamps_ns,
                          exclude_frames=exclude_frames, exclude_sec=exclude_sec,
                          rotations=rot, max_heading_deg=max_heading_deg)
-    has_best = (match >= 0) & np.isfinite(dist)
+    other = np.zeros(n, bool) if foreign is None else np.asarray(foreign, dtype=bool)
+    match = np.where(other, -1, match)
+    has_best = ((match >= 0) | other) & np.isfinite(dist)
     correct = true_matches(pos, np.arange(n), match, radius=radius, rotations=rot,
                            max_heading_deg=max_heading_deg) & has_best & truth.valid
     sel = has_best & truth.valid
