@@ -288,7 +288,8 @@ def test_hku1_bag_replay_finds_the_revisit(harness: Callable[..., Harness],
     assert h.node.stats.processed == sum(1 for k, _ in hku1 if k == 'points')
     assert h.node.stats.skipped == 0 and h.node.stats.rejected == 0
     # Odometry was paired, so the loop edges were drawn between keyframe positions.
-    assert h.markers and len(h.markers[-1].markers[0].points) == 2 * len(got)
+    h.wait_for(lambda: bool(h.markers)
+               and len(h.markers[-1].markers[0].points) == 2 * len(got), 'all loop edges', 10.0)
     assert h.markers[-1].markers[0].header.frame_id == 'map'
 
     def latest() -> dict[str, str]:
