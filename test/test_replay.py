@@ -314,3 +314,126 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
     via_odom = replay(hku / 'bag', cfg, progress='quiet')
     assert via_odom.metrics is not None
     assert abs(via_odom.metrics['queries_with_true_loop'] - m['queries_with_true_loop']) <= 15
+
+
+# -- parity with the node -----------------------------------------------------------------------
+
+
+def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, int]]:
+    """Publish a bag's clouds and odometry to an in-process solid_node; collect its output."""
+    import array
+    import os
+    import random
+    import threading
+    import time
+
+    rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
+    from nav_msgs.msg import Odometry
+    from rclpy.context import Context
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2, PointField
+    from std_msgs.msg import Float64MultiArray
+
+    from solid_ros.bagio import Bag
+    from solid_ros.candidates import decode_candidates
+    from solid_ros.node import SolidNode
+    from solid_ros.poses import matrix_to_quaternion
+
+    msgs: list[tuple[str, object]] = []
+    with Bag(bag) as b:
+        track = b.odometry('/odom')
+        assert track.stamps_ns is not None
+        odom = dict(zip(track.stamps_ns.tolist(), track.poses))
+        for scan in b.clouds('/points'):
+            assert scan.points is not None
+            lay = encode_points(scan.points)
+            cloud = PointCloud2()
+            cloud.header.frame_id = scan.frame_id
+            cloud.header.stamp.sec, cloud.header.stamp.nanosec = divmod(scan.stamp_ns, 10**9)
+            cloud.height, cloud.width = lay.height, lay.width
+            cloud.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype,
+                                       count=f.count) for f in lay.fields]
+            cloud.point_step, cloud.row_step = lay.point_step, lay.row_step
+            cloud.is_dense = lay.is_dense
+            cloud.data = array.array('B', lay.data.tobytes())
+            pose = odom[scan.stamp_ns]
+            o = Odometry()
+            o.header = cloud.header
+            o.header.frame_id = 'map'
+            p = o.pose.pose
+            p.position.x, p.position.y, p.position.z = (float(v) for v in pose[:3, 3])
+            q = matrix_to_quaternion(pose[:3, :3])
+            p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
+            msgs += [('odom', o), ('points', cloud)]
+
+    old_domain = os.environ.get('ROS_DOMAIN_ID')
+    os.environ['ROS_DOMAIN_ID'] = str(random.randint(101, 200))
+    ctx = Context()
+    rclpy.init(context=ctx)
+    got: list[dict] = []
+    try:
+        node = SolidNode(context=ctx, cli_args=['--ros-args', '--params-file', str(params),
+                                                '-r', 'odom:=/odom'])
+        client = Node('replay_parity_client', context=ctx)
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        pub_points = client.create_publisher(PointCloud2, '/points', qos)
+        pub_odom = client.create_publisher(Odometry, '/odom', qos)
+        client.create_subscription(Float64MultiArray, '/solid_node/loop_candidates',
+                                   lambda m: got.extend(decode_candidates(m)), qos)
+        executor = MultiThreadedExecutor(num_threads=3, context=ctx)
+        executor.add_node(node)
+        executor.add_node(client)
+        thread = threading.Thread(target=executor.spin, daemon=True)
+        thread.start()
+
+        def wait(pred, what: str, timeout: float = 120.0) -> None:  # type: ignore[no-untyped-def]
+            deadline = time.monotonic() + timeout
+            while not pred():
+                assert time.monotonic() < deadline, f'timed out waiting for {what}'
+                time.sleep(0.02)
+
+        try:
+            wait(lambda: pub_points.get_subscription_count() > 0
+                 and pub_odom.get_subscription_count() > 0, 'subscriptions')
+            sent = 0
+            for kind, msg in msgs:
+                (pub_odom if kind == 'odom' else pub_points).publish(msg)
+                if kind == 'points':
+                    sent += 1
+                    wait(lambda s=sent: node.stats.received >= s, 'delivery')
+            assert node.wait_idle(120.0)
+            time.sleep(0.5)  # the last candidate messages
+        finally:
+            executor.shutdown()
+            node.destroy_node()
+            client.destroy_node()
+            thread.join(timeout=10.0)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        if old_domain is None:
+            os.environ.pop('ROS_DOMAIN_ID', None)
+        else:
+            os.environ['ROS_DOMAIN_ID'] = old_domain
+    return [(int(c['query_index']), int(c['match_index']), int(c['query_stamp_ns']),
+             int(c['match_stamp_ns']), int(c['match_session'])) for c in got]
+
+
+def test_node_and_replay_give_identical_candidates(tmp_path: Path,
+                                                   bags: dict[str, Path]) -> None:
+    params = tmp_path / 'params.yaml'
+    params.write_text('solid_node:\n  ros__parameters:\n'
+                      '    exclude_recent_frames: 3\n    distance_threshold: 0.02\n'
+                      '    keyframe_min_distance: 1.0\n'
+                      "    qos_reliability: 'reliable'\n    qos_depth: 1000\n"
+                      '    queue_size: 1000\n')
+    node = _node_candidates(bags['mcap'], params)
+    assert main([str(bags['mcap']), '--params', str(params), '--out', str(tmp_path / 'o'),
+                 '--quiet', '--no-plots']) == 0
+    with (tmp_path / 'o' / 'candidates.csv').open() as fh:
+        rows = [r for r in csv.DictReader(fh) if r['accepted'] == '1']
+    offline = [(int(r['query_index']), int(r['match_index']), int(r['query_stamp_ns']),
+                int(r['match_stamp_ns']), int(r['match_session'])) for r in rows]
+    assert node == offline
+    assert len(offline) == 6  # the revisits of places 0..5
