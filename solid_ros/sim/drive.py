@@ -120,7 +120,7 @@ class Drive:
     def __init__(self, config: DriveConfig | None = None) -> None:
         self.config = config if config is not None else DriveConfig()
         c = self.config
-        self.grid = StreetGrid(block=c.block)
+        self.grid = StreetGrid(block=c.block, seed=c.seed)
         self.model = c.model
 
     @cached_property

@@ -9,6 +9,7 @@ a raised crown cylinder) and parked cars make the street distinctive at close ra
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
@@ -25,32 +26,65 @@ GROUND_REFLECTIVITY = 0.15
 
 @dataclass(frozen=True)
 class StreetGrid:
-    """A grid of straight roads: ``nx`` roads along y at x = i * block, ``ny`` along x.
+    """A grid of straight roads: ``nx`` roads along y (constant x), ``ny`` along x.
+
+    Road positions and widths vary around the nominal ones (seeded), so blocks differ in size
+    and streets in width, as in a real town; a perfectly regular grid would make every
+    crossing look alike.
 
     Attributes:
-        block: distance between neighbouring parallel roads, metres.
+        block: nominal distance between neighbouring parallel roads, metres.
         nx: number of north-south roads (constant x).
         ny: number of east-west roads (constant y).
-        road_half_width: half the road width, metres; nothing is built on the road.
+        road_half_width: nominal half road width, metres; nothing is built on a road.
+        jitter: roads move up to this fraction of ``block`` from the regular grid and widths
+            vary by up to this fraction; 0 gives a regular grid.
+        seed: seed of the variation.
     """
 
     block: float = 80.0
     nx: int = 4
     ny: int = 3
     road_half_width: float = 7.0
+    jitter: float = 0.2
+    seed: int = 0
 
     def __post_init__(self) -> None:
         if not 30.0 <= self.block <= 1000.0:
             raise ConfigError(f'block: {self.block} is out of range; allowed [30, 1000]')
         if self.nx < 2 or self.ny < 2:
             raise ConfigError(f'nx, ny: need at least 2 roads each way, got {self.nx}, {self.ny}')
-        if not 3.0 <= self.road_half_width <= 0.25 * self.block:
+        if not 3.0 <= self.road_half_width <= 0.2 * self.block:
             raise ConfigError(f'road_half_width: {self.road_half_width} is out of range; '
-                              f'allowed [3, {0.25 * self.block}]')
+                              f'allowed [3, {0.2 * self.block}]')
+        if not 0.0 <= self.jitter <= 0.25:
+            raise ConfigError(f'jitter: {self.jitter} is out of range; allowed [0, 0.25]')
+
+    @cached_property
+    def _layout(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Road positions and half widths, x roads then y roads, with one virtual road
+        beyond each end (where the outer blocks end)."""
+        rng = np.random.default_rng([self.seed, 0x6A1D])
+        out = []
+        for n in (self.nx, self.ny):
+            pos = (np.arange(-1, n + 1) + self.jitter * rng.uniform(-1.0, 1.0, n + 2)) * self.block
+            half = self.road_half_width * (1.0 + self.jitter * rng.uniform(-1.0, 1.0, n + 2))
+            out += [pos, half]
+        return out[0], out[1], out[2], out[3]
+
+    def road_x(self, i: int) -> tuple[float, float]:
+        """Position and half width of north-south road ``i`` (-1 and nx are virtual)."""
+        pos, half = self._layout[0], self._layout[1]
+        return float(pos[i + 1]), float(half[i + 1])
+
+    def road_y(self, j: int) -> tuple[float, float]:
+        """Position and half width of east-west road ``j`` (-1 and ny are virtual)."""
+        pos, half = self._layout[2], self._layout[3]
+        return float(pos[j + 1]), float(half[j + 1])
 
     def node(self, i: int, j: int) -> tuple[float, float]:
         """Return the world (x, y) of the crossing of road column ``i`` and row ``j``."""
-        return i * self.block, j * self.block
+        return self.road_x(i)[0], self.road_y(j)[0]
 
 
 @dataclass(frozen=True)
@@ -139,7 +173,8 @@ def _cylinder_sdf(q: FloatArray, cyls: FloatArray) -> FloatArray:
     return _prism_sdf(d_xy, q[:, 2], cyls[:, 3], cyls[:, 4])
 
 
-def _frontage(rng: np.random.Generator, length: float) -> list[tuple[float, float]]:
+def _frontage(rng: np.random.Generator, length: float,
+              open_lots: float) -> list[tuple[float, float]]:
     """Split a street side of ``length`` metres into (start, width) building plots."""
     plots = []
     pos = float(rng.uniform(0.0, 6.0))
@@ -149,7 +184,7 @@ def _frontage(rng: np.random.Generator, length: float) -> list[tuple[float, floa
             break
         plots.append((pos, width))
         # Mostly narrow gaps, sometimes an open lot: both make places distinctive.
-        gap = rng.uniform(15.0, 30.0) if rng.random() < 0.15 else rng.uniform(1.0, 8.0)
+        gap = rng.uniform(12.0, 30.0) if rng.random() < open_lots else rng.uniform(1.0, 8.0)
         pos += width + float(gap)
     return plots
 
@@ -182,7 +217,6 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
     """
     g = grid if grid is not None else StreetGrid()
     rng = np.random.default_rng([seed, 0x5CE7E])
-    w = g.road_half_width
     boxes: list[list[float]] = []
     box_refl: list[float] = []
     cyls: list[list[float]] = []
@@ -190,15 +224,21 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
 
     for i in range(-1, g.nx):
         for j in range(-1, g.ny):
-            x0, y0 = i * g.block + w, j * g.block + w
-            x1, y1 = (i + 1) * g.block - w, (j + 1) * g.block - w
+            (xa, wa), (xb, wb) = g.road_x(i), g.road_x(i + 1)
+            (ya, va), (yb, vb) = g.road_y(j), g.road_y(j + 1)
+            x0, x1, y0, y1 = xa + wa, xb - wb, ya + va, yb - vb
             half_depth = 0.5 * min(x1 - x0, y1 - y0)
             for side in range(4):
                 origin, along, inward, length = _side_frame(x0, x1, y0, y1, side)
-                for start, width in _frontage(rng, length):
-                    setback = rng.uniform(1.5, 7.0)
+                # Each street side has a character (set-back, height, open lots), so streets
+                # differ from each other more than buildings along one street do.
+                base_setback = rng.uniform(0.5, 9.0)
+                base_height = np.exp(rng.uniform(np.log(5.0), np.log(25.0)))
+                for start, width in _frontage(rng, length, float(rng.uniform(0.0, 0.35))):
+                    setback = base_setback + rng.uniform(0.0, 2.5)
                     depth = rng.uniform(8.0, max(9.0, min(22.0, half_depth - setback)))
-                    height = float(np.exp(rng.uniform(np.log(4.0), np.log(35.0))))
+                    height = float(np.clip(base_height * np.exp(rng.normal(0.0, 0.35)), 3.0,
+                                           60.0))
                     centre = origin + along * (start + 0.5 * width) + inward * (
                         setback + 0.5 * depth)
                     yaw = float(np.arctan2(along[1], along[0]))
@@ -211,11 +251,14 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
     # Street furniture along both edges of every road segment of the grid.
     for horizontal in (True, False):
         count, span = (g.ny, g.nx) if horizontal else (g.nx, g.ny)
+        road, cross = (g.road_y, g.road_x) if horizontal else (g.road_x, g.road_y)
         for k in range(count):
+            at, width = road(k)
             for seg in range(span - 1):
+                (a, wa), (b, wb) = cross(seg), cross(seg + 1)
                 for edge in (-1.0, 1.0):
-                    _furnish(rng, g, horizontal, k * g.block, seg * g.block + w,
-                             (seg + 1) * g.block - w, edge, boxes, box_refl, cyls, cyl_refl)
+                    _furnish(rng, horizontal, at, width, a + wa, b - wb, edge, boxes, box_refl,
+                             cyls, cyl_refl)
 
     return Scene(grid=g, boxes=np.asarray(boxes, dtype=np.float64).reshape(-1, 7),
                  box_reflectivity=np.asarray(box_refl, dtype=np.float64),
@@ -223,11 +266,10 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
                  cylinder_reflectivity=np.asarray(cyl_refl, dtype=np.float64))
 
 
-def _furnish(rng: np.random.Generator, g: StreetGrid, horizontal: bool, road: float,
+def _furnish(rng: np.random.Generator, horizontal: bool, road: float, w: float,
              start: float, end: float, edge: float, boxes: list[list[float]],
              box_refl: list[float], cyls: list[list[float]], cyl_refl: list[float]) -> None:
-    """Add poles, trees and parked cars along one edge of one road segment."""
-    w = g.road_half_width
+    """Add poles, trees and parked cars along one edge (half width ``w``) of a road segment."""
 
     def at(s: float, offset: float) -> tuple[float, float]:
         return (s, road + edge * offset) if horizontal else (road + edge * offset, s)

@@ -132,8 +132,8 @@ def build_trajectory(grid: StreetGrid, seed: int = 0, spacing: float = 2.0,
 
     # Per segment: right-hand lane offset, weave amplitude, wavelength and phase.
     n_seg = len(route) - 1
-    lane = rng.uniform(1.0, 3.5, n_seg)
-    amp = rng.uniform(0.0, 1.0, n_seg)
+    lane = rng.uniform(1.0, 3.0, n_seg)
+    amp = rng.uniform(0.0, 0.8, n_seg)
     wavelength = rng.uniform(30.0, 70.0, n_seg)
     phase = rng.uniform(0.0, 2.0 * np.pi, n_seg)
     lateral = -lane[seg] + amp[seg] * np.sin(2.0 * np.pi * s_fine / wavelength[seg] + phase[seg])
