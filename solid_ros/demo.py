@@ -9,9 +9,9 @@ is ``solid_replay`` on that bag.
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Sequence
 from pathlib import Path
-import sys
 
 import numpy as np
 
