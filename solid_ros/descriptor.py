@@ -114,9 +114,8 @@ def voxel_downsample(xyz: npt.ArrayLike, leaf: float) -> FloatArray:
         Centroids, shape (M, 3), float64, in cell-key order (deterministic).
     """
     cols = _columns(xyz)
-    if leaf <= 0.0:
-        return cols.T.astype(np.float64)
-    return _voxel_columns(cols, leaf).T
+    out: FloatArray = cols.T.astype(np.float64) if leaf <= 0.0 else _voxel_columns(cols, leaf).T
+    return out
 
 
 def fov_mask(x: npt.NDArray[np.floating], y: npt.NDArray[np.floating], width_deg: float,
@@ -163,7 +162,8 @@ def preprocess(points: npt.ArrayLike, config: SolidConfig) -> FloatArray:
     Returns:
         The kept points, shape (M, 3), float64.
     """
-    return _preprocess_columns(points, config).T
+    out: FloatArray = _preprocess_columns(points, config).T
+    return out
 
 
 def _weights(ec: FloatArray) -> FloatArray:

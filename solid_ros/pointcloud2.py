@@ -119,7 +119,8 @@ def cloud_to_xyz(msg: Any) -> npt.NDArray[np.floating]:
 
 def _strided(buf: npt.NDArray[np.uint8], dt: np.dtype[Any], offset: int,
              shape: tuple[int, ...], strides: tuple[int, ...]) -> npt.NDArray[Any]:
-    arr = np.ndarray(shape=shape, dtype=dt, buffer=buf, offset=offset, strides=strides)
+    arr: npt.NDArray[Any] = np.ndarray(shape=shape, dtype=dt, buffer=buf, offset=offset,
+                                       strides=strides)
     arr.flags.writeable = False
     return arr
 
