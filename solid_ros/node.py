@@ -51,7 +51,7 @@ __all__ = ['NodeStats', 'SolidNode', 'main']
 
 _NS = 1_000_000_000
 _ODOM_BUFFER = 512
-_ODOM_WAIT_SEC = 0.1
+_ODOM_WAIT_SEC = 0.25
 _WARN_THROTTLE_SEC = 5.0
 
 
@@ -65,6 +65,7 @@ class NodeStats:
     rejected: int = 0
     failed: int = 0
     loops: int = 0
+    without_odom: int = 0
 
 
 def _stamp_ns(stamp: Any) -> int:
@@ -125,9 +126,11 @@ class SolidNode(Node):
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(PointCloud2, 'points', self._on_points, qos)
         if self._cfg.use_odom:
-            odom_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                                  reliability=reliability)
-            self.create_subscription(Odometry, 'odom', self._on_odom, odom_qos)
+            # Deep enough that a burst of odometry is not dropped before pairing.
+            odom_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
+                                  depth=max(100, self._cfg.qos_depth), reliability=reliability)
+            self._odom_sub = self.create_subscription(Odometry, 'odom', self._on_odom,
+                                                      odom_qos)
         self.create_service(Trigger, '~/save_database', self._on_save)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_timer(self._cfg.diagnostics_period_sec, self._publish_diagnostics)
@@ -206,10 +209,12 @@ class SolidNode(Node):
             return None
         tol = int(self._cfg.odom_tolerance_sec * _NS)
         deadline = time.monotonic() + _ODOM_WAIT_SEC
+        # Odometry often arrives just after its cloud: wait for one at or past it, but only
+        # when someone publishes odometry (an unused odom topic must not slow every scan).
+        publishing = self.count_publishers(self._odom_sub.topic_name) > 0
         with self._cv:
-            # Odometry usually arrives just after its cloud: wait for one at or past it.
-            while (self._odom and self._odom[-1][0] < stamp_ns and not self._stop
-                   and time.monotonic() < deadline):
+            while (publishing and (not self._odom or self._odom[-1][0] < stamp_ns)
+                   and not self._stop and time.monotonic() < deadline):
                 self._cv.wait(deadline - time.monotonic())
             best = min(self._odom, key=lambda sp: abs(sp[0] - stamp_ns), default=None)
         if best is None or abs(best[0] - stamp_ns) > tol:
@@ -245,6 +250,8 @@ class SolidNode(Node):
             cands = self._detector.process(points, stamp_ns, pose=pose)
         self._times_ms.append((time.perf_counter() - t0) * 1e3)
         self.stats.processed += 1
+        if pose is None and self._cfg.use_odom:
+            self.stats.without_odom += 1
         if pose is not None:
             # Match positions of this session are looked up by the match stamp.
             self._positions[stamp_ns] = pose[:3, 3].copy()
@@ -352,7 +359,8 @@ class SolidNode(Node):
         values = {
             'clouds_received': s.received, 'clouds_processed': s.processed,
             'clouds_skipped': s.skipped, 'clouds_rejected': s.rejected,
-            'clouds_failed': s.failed, 'loop_candidates': s.loops,
+            'clouds_failed': s.failed, 'clouds_without_odom': s.without_odom,
+            'loop_candidates': s.loops,
             'database_size': self._db_size(), 'queue_length': len(self._queue),
             'processing_ms_p50': f'{pct[0]:.2f}', 'processing_ms_p95': f'{pct[1]:.2f}',
             'processing_ms_p99': f'{pct[2]:.2f}',
