@@ -189,6 +189,9 @@ class SolidConfig(_Schema):
                          high=1024, shape=True)
     max_distance: float = _p(80.0, 'L_max: horizontal extent of the range bins, metres',
                              low=0.1, high=1000.0, shape=True)
+    heading_weight: str = _p('count', "Heading signature: 'count' is the paper's A-SOLiD; "
+                             "'range' weights points by range (less parallax, narrow FOVs)",
+                             choices=('count', 'range'), shape=True)
 
     # Database (fixed once running).
     capacity: int = _p(100000, 'Stored scans; the oldest is evicted beyond this', low=1,

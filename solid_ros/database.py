@@ -147,7 +147,7 @@ class DescriptorDatabase:
         return self.oldest_seq <= seq < self._next
 
     def a_solid(self, seq: int) -> npt.NDArray[np.float32]:
-        """A-SOLiD (unit-normalised) of a stored scan."""
+        """Heading signature (A-SOLiD unless heading_weight is range), unit-normalised."""
         return self._a[self.slot(seq)]
 
     def r_solid(self, seq: int) -> npt.NDArray[np.float32]:

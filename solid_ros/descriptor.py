@@ -32,6 +32,10 @@ class Descriptor:
         aec: azimuth-elevation counts, shape (N_a, N_e).
         iev: min-max normalised elevation counts (the weights), shape (N_e,).
         num_points: points left after preprocessing.
+        heading: signature used for the heading, shape (N_a,): ``a_solid`` itself with
+            ``heading_weight='count'``; with ``'range'`` the same sum with each point
+            weighted by its horizontal range, so near objects, whose azimuth shifts most
+            when the sensor moves, count less.
     """
 
     r_solid: FloatArray
@@ -40,6 +44,7 @@ class Descriptor:
     aec: FloatArray
     iev: FloatArray
     num_points: int
+    heading: FloatArray
 
     @property
     def ec(self) -> FloatArray:
@@ -201,5 +206,10 @@ def describe(points: npt.ArrayLike, config: SolidConfig | None = None) -> Descri
     rec = np.bincount(ir * n_e + ie, minlength=n_r * n_e).reshape(n_r, n_e).astype(np.float64)
     aec = np.bincount(ia * n_e + ie, minlength=n_a * n_e).reshape(n_a, n_e).astype(np.float64)
     iev = _weights(rec.sum(axis=0))
-    return Descriptor(r_solid=rec @ iev, a_solid=aec @ iev, rec=rec, aec=aec, iev=iev,
-                      num_points=int(len(r)))
+    a_solid = aec @ iev
+    heading = a_solid
+    if cfg.heading_weight == 'range':
+        a_range = np.bincount(ia * n_e + ie, weights=r, minlength=n_a * n_e)
+        heading = a_range.reshape(n_a, n_e) @ iev
+    return Descriptor(r_solid=rec @ iev, a_solid=a_solid, rec=rec, aec=aec, iev=iev,
+                      num_points=int(len(r)), heading=heading)

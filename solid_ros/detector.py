@@ -209,7 +209,7 @@ class LoopDetector:
         stamp = int(stamp_ns)
         vec = pose_to_vector(pose) if pose is not None else None
         out = self._query(desc, stamp)
-        self.database.add(desc.r_solid, desc.a_solid, stamp, vec)
+        self.database.add(desc.r_solid, desc.heading, stamp, vec)
         self.last_descriptor = desc
         self.last_was_keyframe = True
         self._kf_stamp, self._kf_pose = stamp, vec
@@ -232,7 +232,7 @@ class LoopDetector:
             self.last_best = LoopCandidate(
                 query_index=q_index, match_index=top.index, query_stamp_ns=stamp,
                 match_stamp_ns=top.stamp_ns, match_session=top.session, distance=top.distance,
-                yaw=estimate_yaw(desc.a_solid, self.database.a_solid(top.seq)),
+                yaw=estimate_yaw(desc.heading, self.database.a_solid(top.seq)),
                 margin=min((o.distance for o in hits if not same_place(o, top)),
                            default=math.inf) - top.distance)
         if (cfg.min_loop_gap and self._last_loop_query is not None
@@ -255,7 +255,7 @@ class LoopDetector:
         return [LoopCandidate(query_index=q_index, match_index=h.index, query_stamp_ns=stamp,
                               match_stamp_ns=h.stamp_ns, match_session=h.session,
                               distance=h.distance,
-                              yaw=estimate_yaw(desc.a_solid, self.database.a_solid(h.seq)),
+                              yaw=estimate_yaw(desc.heading, self.database.a_solid(h.seq)),
                               margin=margin)
                 for h, margin in taken]
 

@@ -173,3 +173,18 @@ def test_preprocess_gate_is_strict_and_3d() -> None:
     cfg = SolidConfig(min_range=3.0, max_range=10.0, voxel_size=0.0)
     pts = np.array([[3.0, 0, 0], [0, 0, 3.0001], [10.0, 0, 0], [6.0, 0, 8.1]])
     np.testing.assert_array_equal(preprocess(pts, cfg), [[0, 0, 3.0001]])
+
+
+def test_heading_signature_is_a_solid_or_range_weighted(shared_data: Path) -> None:
+    pts = read_pcd(shared_data / 'kitti' / 'pcd' / '000313.pcd')
+    plain = describe(pts, SolidConfig())
+    np.testing.assert_array_equal(plain.heading, plain.a_solid)
+    weighted = describe(pts, SolidConfig(heading_weight='range'))
+    np.testing.assert_array_equal(weighted.a_solid, plain.a_solid)  # A-SOLiD stays the paper's
+    assert not np.allclose(weighted.heading / np.linalg.norm(weighted.heading),
+                           plain.a_solid / np.linalg.norm(plain.a_solid))
+    # Same points at twice the range weigh twice as much.
+    cfg = SolidConfig(heading_weight='range', voxel_size=0.0, min_range=0.0)
+    near = describe(np.array([[10.0, 0.0, -1.0]]), cfg).heading
+    far = describe(np.array([[20.0, 0.0, -2.0]]), cfg).heading
+    assert far.sum() == pytest.approx(2 * near.sum())

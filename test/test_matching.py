@@ -71,7 +71,7 @@ def _yaw_errors(data: Path, cfg: SolidConfig, yaws_deg: np.ndarray) -> np.ndarra
         cand = describe(scan, cfg)
         for yaw in np.radians(yaws_deg):
             query = describe(rotate(scan, -yaw), cfg)  # query sensor turned by +yaw
-            errors.append(angle_error_deg(estimate_yaw(query.a_solid, cand.a_solid), yaw))
+            errors.append(angle_error_deg(estimate_yaw(query.heading, cand.heading), yaw))
     return np.array(errors)
 
 
@@ -84,7 +84,9 @@ def test_heading_of_rotated_real_scans_is_sub_bin_accurate(shared_data: Path) ->
     assert errors.max() < 3.0, errors
 
 
-def test_heading_with_90_degree_fov(shared_data: Path) -> None:
+@pytest.mark.parametrize('weight', ['count', 'range'])
+def test_heading_with_90_degree_fov(shared_data: Path, weight: str) -> None:
     yaws = np.linspace(-29.3, 28.9, 13)
-    errors = _yaw_errors(shared_data, SolidConfig(fov_width_deg=90.0), yaws)
+    cfg = SolidConfig(fov_width_deg=90.0, heading_weight=weight)
+    errors = _yaw_errors(shared_data, cfg, yaws)
     assert errors.mean() < 2.0, errors

@@ -263,13 +263,14 @@ def recall_scans() -> tuple[Drive, list[SimScan]]:
     return drive, list(drive)
 
 
-def _recall(drive: Drive, scans: list[SimScan],
-            fov: float) -> dict[str, tuple[float, list[float]]]:
+def _recall(drive: Drive, scans: list[SimScan], fov: float,
+            heading_weight: str = 'count') -> dict[str, tuple[float, list[float]]]:
     """Recall@1 and yaw errors (degrees, correct matches) per label, threshold off."""
     t = drive.trajectory
     exclude = int(drive.config.exclude_distance / drive.config.spacing)
     det = LoopDetector(SolidConfig(fov_width_deg=fov, distance_threshold=2.0,
-                                   exclude_recent_frames=exclude))
+                                   exclude_recent_frames=exclude,
+                                   heading_weight=heading_weight))
     top: dict[int, LoopCandidate] = {}
     for scan in scans:
         found = det.process(scan.points, scan.stamp_ns, scan.pose)
@@ -305,14 +306,13 @@ def test_recall_360(recall_scans: tuple[Drive, list[SimScan]]) -> None:
 
 def test_recall_90_degree_clip(recall_scans: tuple[Drive, list[SimScan]]) -> None:
     drive, scans = recall_scans
-    res = _recall(drive, scans, 90.0)
+    # The shipped 90-degree preset weights the heading signature by range: with the paper's
+    # counts, near objects' parallax pulls a few headings tens of degrees off (mean 2.1 deg).
+    res = _recall(drive, scans, 90.0, heading_weight='range')
     recall, errors = res['same']
     print(f'90 deg: same R@1 {recall:.3f}, yaw error mean {np.mean(errors):.2f} deg, '
           f'median {np.median(errors):.2f} deg; reverse R@1 {res["reverse"][0]:.3f}')
     assert recall >= 0.8
-    # A 90-degree wedge constrains the heading less: a few matches are tens of degrees off
-    # (mean about 2 deg on this drive), most are within a degree or two.
-    assert np.median(errors) < 2.0
-    assert np.mean(errors) < 4.0
+    assert np.mean(errors) < 2.0
     # Facing the other way, a 90-degree sensor sees a different street: no overlap, no loop.
     assert res['reverse'][0] < 0.2
