@@ -208,7 +208,7 @@ class SolidConfig(_Schema):
                          high=2**31 - 1, read_only=True)
 
     # Query and acceptance (tunable at runtime).
-    distance_threshold: float = _p(0.05, 'Accept a loop when cosine distance is below this',
+    distance_threshold: float = _p(0.03, 'Accept a loop when cosine distance is below this',
                                    low=0.0, high=2.0)
     exclude_recent_frames: int = _p(50, 'Never match the most recent N stored scans', low=0,
                                     high=10_000_000)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree  # type: ignore[import-untyped]
+from scipy.spatial import cKDTree
 
 from solid_ros.config import SolidConfig
 from solid_ros.errors import DatabaseError
@@ -148,14 +148,16 @@ class DescriptorDatabase:
 
     def a_solid(self, seq: int) -> npt.NDArray[np.float32]:
         """Heading signature (A-SOLiD unless heading_weight is range), unit-normalised."""
-        return self._a[self.slot(seq)]
+        row: npt.NDArray[np.float32] = self._a[self.slot(seq)]
+        return row
 
     def r_solid(self, seq: int) -> npt.NDArray[np.float32]:
         """R-SOLiD (unit-normalised; zeros for an empty scan) of a stored scan."""
         s = self.slot(seq)
         if not self._flags[s] & _HAS_R:
             return np.zeros(self.num_range, dtype=np.float32)
-        return self._r[s]
+        row: npt.NDArray[np.float32] = self._r[s]
+        return row
 
     def pose(self, seq: int) -> npt.NDArray[np.float32] | None:
         """Stored pose ``(x, y, z, qx, qy, qz, qw)`` of a scan, or None."""

@@ -94,12 +94,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return replay_main(args_in)  # a user's bag: exactly solid_replay
     args = _parser().parse_args(args_in)
     try:
-        from solid_ros.sim import ensure_demo_bag
+        from solid_ros.sim.bagwriter import DEMO_SENSORS, ensure_demo_bag
 
         if not args.quiet:
             print(f'{PROG}: preparing the simulated drive ({args.sensor}, seed {args.seed})...',
                   file=sys.stderr, flush=True)
-        bag = ensure_demo_bag(args.cache_dir, seed=args.seed, sensor=args.sensor)
+        bag = ensure_demo_bag(args.cache_dir, seed=args.seed, sensor=DEMO_SENSORS[args.sensor])
         params = args.params or shipped_config(SENSOR_PARAMS[args.sensor])
         overrides = {} if args.fov is None else {'fov_width_deg': args.fov}
         config, node_config = load_config(params, 'solid_node', overrides)

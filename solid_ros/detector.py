@@ -80,7 +80,7 @@ def pose_to_vector(pose: Any) -> npt.NDArray[np.float64]:
     if arr.shape in ((4, 4), (3, 4)):
         if not np.all(np.isfinite(arr)):
             raise SolidError('pose matrix holds NaN or infinite values')
-        from scipy.spatial.transform import Rotation  # type: ignore[import-untyped]
+        from scipy.spatial.transform import Rotation
 
         try:
             quat = Rotation.from_matrix(arr[:3, :3]).as_quat()

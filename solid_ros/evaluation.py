@@ -140,7 +140,8 @@ def true_matches(positions: npt.ArrayLike, query: npt.ArrayLike, match: npt.Arra
         heads = _headings(np.asarray(rotations, dtype=np.float64))
         assert heads is not None
         ok &= np.abs(_wrap(heads[q] - heads[safe])) <= math.radians(max_heading_deg)
-    return ok
+    out: npt.NDArray[np.bool_] = ok
+    return out
 
 
 @dataclass(frozen=True)
@@ -213,7 +214,8 @@ def relative_yaws(rotations: npt.ArrayLike, query: npt.ArrayLike,
     """Reference yaw z-rot(R_match^T R_query) for each pair, radians in (-pi, pi]."""
     r = np.asarray(rotations, dtype=np.float64)
     rel = np.einsum('nji,njk->nik', r[np.asarray(match)], r[np.asarray(query)])
-    return np.arctan2(rel[:, 1, 0], rel[:, 0, 0])
+    yaws: FloatArray = np.arctan2(rel[:, 1, 0], rel[:, 0, 0])
+    return yaws
 
 
 def yaw_error_stats(errors_deg: npt.ArrayLike) -> dict[str, float | int | None]:

@@ -26,15 +26,20 @@ import numpy.typing as npt
 from solid_ros.errors import BagError
 from solid_ros.pointcloud2 import encode_points
 from solid_ros.sim.drive import Drive, DriveConfig, SimScan
+from solid_ros.sim.lidar import avia_like, hdl64
 
-__all__ = ['BagSummary', 'DEMO_DEFAULTS', 'cache_root', 'demo_dir', 'ensure_demo_bag',
+__all__ = ['BagSummary', 'DEMO_DEFAULTS', 'DEMO_SENSORS', 'cache_root', 'demo_dir',
+           'ensure_demo_bag',
            'quaternion', 'read_kitti_poses', 'write_bag', 'write_drive']
 
 POINTS_TOPIC = '/points'
 ODOM_TOPIC = '/odom'
 
-# The drive the demo command replays: 64-beam, 360 deg, about 1.6 km, scans every 2 m.
-DEMO_DEFAULTS: dict[str, Any] = {'seed': 0, 'sensor': 'hdl64', 'block': 80.0, 'spacing': 2.0}
+# The drive the demo command replays: 64-beam, 360 deg, 50 m blocks (about 1.1 km, 553
+# scans every 2 m) at 512 points per ring, so the cached bag stays near 280 MB.
+DEMO_DEFAULTS: dict[str, Any] = {'seed': 0, 'sensor': hdl64(points_per_ring=512),
+                                 'block': 50.0, 'spacing': 2.0}
+DEMO_SENSORS = {'hdl64': DEMO_DEFAULTS['sensor'], 'avia_like': avia_like()}
 
 
 @dataclass(frozen=True)
