@@ -190,7 +190,7 @@ class SolidConfig(_Schema):
     max_distance: float = _p(80.0, 'L_max: horizontal extent of the range bins, metres',
                              low=0.1, high=1000.0, shape=True)
     heading_weight: str = _p('count', "Heading signature: 'count' is the paper's A-SOLiD; "
-                             "'range' weights points by range (less parallax, narrow FOVs)",
+                             "'range' weights points by squared range (less parallax)",
                              choices=('count', 'range'), shape=True)
 
     # Database (fixed once running).

@@ -9,6 +9,7 @@ is ``solid_replay`` on that bag.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from solid_ros.errors import SolidError
+from solid_ros.evaluation import relative_yaws
 from solid_ros.replay import ReplayResult, load_config, replay, summary_lines
 from solid_ros.replay import main as replay_main
 
@@ -39,8 +41,8 @@ def shipped_config(name: str) -> Path:
 
 
 def revisit_table(result: ReplayResult, labels_path: Path,
-                  radius: float) -> list[tuple[str, int, int]]:
-    """Per revisit kind: (kind, revisits, revisits whose best match lies within ``radius``).
+                  radius: float) -> list[tuple[str, int, int, float]]:
+    """Per revisit kind: (kind, revisits, found, mean yaw error in degrees of the found).
 
     A revisit counts as found when the detector's top-1 match, accepted or not, is within
     ``radius`` metres of the query's reference position; accepted loops are in the summary.
@@ -50,17 +52,24 @@ def revisit_table(result: ReplayResult, labels_path: Path,
     if result.reference is None:
         return []
     pos = result.reference[:, :3, 3]
-    counts: dict[str, list[int]] = {}
+    rot = result.reference[:, :3, :3]
+    seen: dict[str, list[int]] = {}
+    errors: dict[str, list[float]] = {}
     for q, best in enumerate(result.best):
         kind = kinds.get(q, 'new')
         if kind == 'new':
             continue
-        total_found = counts.setdefault(kind, [0, 0])
-        total_found[0] += 1
-        if best is not None and best.match_session == result.config.session_id:
-            gap = float(np.linalg.norm(pos[q] - pos[best.match_index]))
-            total_found[1] += int(gap <= radius)
-    return [(k, v[0], v[1]) for k, v in sorted(counts.items())]
+        seen.setdefault(kind, []).append(q)
+        if best is None or best.match_session != result.config.session_id:
+            continue
+        j = best.match_index
+        if float(np.linalg.norm(pos[q] - pos[j])) <= radius:
+            truth = float(relative_yaws(rot, [q], [j])[0])
+            errors.setdefault(kind, []).append(
+                abs(math.degrees(math.remainder(best.yaw - truth, 2 * math.pi))))
+    return [(k, len(v), len(errors.get(k, [])),
+             float(np.mean(errors[k])) if errors.get(k) else math.nan)
+            for k, v in sorted(seen.items())]
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -116,8 +125,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if table:
         print('  revisits by kind  (found = best match within '
               f'{args.radius:g} m, accepted or not)')
-        for kind, total, found in table:
-            print(f'    {kind:<8} {found:4d} of {total:4d} found ({found / total:.2f})')
+        for kind, total, found, yaw_err in table:
+            print(f'    {kind:<8} {found:4d} of {total:4d} found ({found / total:.2f}), '
+                  f'yaw error mean {yaw_err:.2f} deg')
     print(f'  simulated bag     {bag}')
     return 0
 

@@ -34,8 +34,8 @@ class Descriptor:
         num_points: points left after preprocessing.
         heading: signature used for the heading, shape (N_a,): ``a_solid`` itself with
             ``heading_weight='count'``; with ``'range'`` the same sum with each point
-            weighted by its horizontal range, so near objects, whose azimuth shifts most
-            when the sensor moves, count less.
+            weighted by its squared horizontal range (about the surface it stands for), so
+            near objects, whose azimuth shifts most when the sensor moves, count less.
     """
 
     r_solid: FloatArray
@@ -209,7 +209,7 @@ def describe(points: npt.ArrayLike, config: SolidConfig | None = None) -> Descri
     a_solid = aec @ iev
     heading = a_solid
     if cfg.heading_weight == 'range':
-        a_range = np.bincount(ia * n_e + ie, weights=r, minlength=n_a * n_e)
+        a_range = np.bincount(ia * n_e + ie, weights=r * r, minlength=n_a * n_e)
         heading = a_range.reshape(n_a, n_e) @ iev
     return Descriptor(r_solid=rec @ iev, a_solid=a_solid, rec=rec, aec=aec, iev=iev,
                       num_points=int(len(r)), heading=heading)

@@ -183,8 +183,8 @@ def test_heading_signature_is_a_solid_or_range_weighted(shared_data: Path) -> No
     np.testing.assert_array_equal(weighted.a_solid, plain.a_solid)  # A-SOLiD stays the paper's
     assert not np.allclose(weighted.heading / np.linalg.norm(weighted.heading),
                            plain.a_solid / np.linalg.norm(plain.a_solid))
-    # Same points at twice the range weigh twice as much.
+    # Same points at twice the range weigh four times as much (r squared).
     cfg = SolidConfig(heading_weight='range', voxel_size=0.0, min_range=0.0)
     near = describe(np.array([[10.0, 0.0, -1.0]]), cfg).heading
     far = describe(np.array([[20.0, 0.0, -2.0]]), cfg).heading
-    assert far.sum() == pytest.approx(2 * near.sum())
+    assert far.sum() == pytest.approx(4 * near.sum())
