@@ -20,6 +20,7 @@ from solid_ros.errors import SolidError
 from solid_ros.evaluation import relative_yaws
 from solid_ros.replay import ReplayResult, load_config, replay, summary_lines
 from solid_ros.replay import main as replay_main
+from solid_ros.runtime import tune_allocator
 
 __all__ = ['main', 'revisit_table', 'shipped_config']
 
@@ -102,6 +103,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args_in and not args_in[0].startswith('-'):
         return replay_main(args_in)  # a user's bag: exactly solid_replay
     args = _parser().parse_args(args_in)
+    tune_allocator()
     try:
         from solid_ros.sim.bagwriter import DEMO_SENSORS, ensure_demo_bag
 

@@ -132,9 +132,15 @@ def fov_mask(x: npt.NDArray[np.floating], y: npt.NDArray[np.floating], width_deg
     """
     if width_deg >= 360.0:
         return np.ones(np.shape(x), dtype=bool)
-    az = np.degrees(np.arctan2(y, x)) - center_deg
-    rel = (az + 180.0) % 360.0 - 180.0
-    inside: npt.NDArray[np.bool_] = np.abs(rel) <= 0.5 * width_deg
+    # In place: each fresh scan-sized temporary costs page faults (see solid_ros.runtime).
+    rel = np.arctan2(y, x)
+    np.degrees(rel, out=rel)
+    if center_deg != 0.0:
+        rel -= center_deg - 180.0
+        np.mod(rel, 360.0, out=rel)
+        rel -= 180.0
+    np.abs(rel, out=rel)
+    inside: npt.NDArray[np.bool_] = rel <= 0.5 * width_deg
     return inside
 
 
@@ -145,13 +151,18 @@ def _preprocess_columns(points: npt.ArrayLike, config: SolidConfig) -> FloatArra
     x, y, z = cols
     # Range gate on the squared 3-D norm; NaN and inf fail both comparisons and drop out.
     with np.errstate(invalid='ignore', over='ignore'):
-        d2 = x * x + y * y + z * z
-    keep = (d2 > config.min_range ** 2) & (d2 < config.max_range ** 2)
+        d2 = x * x
+        d2 += y * y
+        d2 += z * z
+    keep = d2 > config.min_range ** 2
+    keep &= d2 < config.max_range ** 2
     if config.fov_width_deg < 360.0:
-        idx = np.flatnonzero(keep)
-        out = ~fov_mask(x[idx], y[idx], config.fov_width_deg, config.fov_center_deg)
-        keep[idx[out]] = False
-    cols = np.stack([c[keep] for c in cols]) if not keep.all() else cols
+        keep &= fov_mask(x, y, config.fov_width_deg, config.fov_center_deg)
+    if not keep.all():
+        kept = np.empty((3, int(np.count_nonzero(keep))), dtype=cols.dtype)
+        for row, col in zip(kept, cols):
+            np.compress(keep, col, out=row)
+        cols = kept
     if config.voxel_size > 0.0:
         return _voxel_columns(cols, config.voxel_size)
     return cols.astype(np.float64)

@@ -46,6 +46,7 @@ from solid_ros.detector import LoopDetector
 from solid_ros.errors import CloudError, ConfigError, SolidError
 from solid_ros.node_params import apply_changes, declare_all
 from solid_ros.pointcloud2 import cloud_to_xyz
+from solid_ros.runtime import tune_allocator
 
 __all__ = ['NodeStats', 'SolidNode', 'main']
 
@@ -394,6 +395,7 @@ def _save_atomic(detector: LoopDetector, path: str) -> None:
 
 def main(args: list[str] | None = None) -> int:
     """Run ``solid_node`` until SIGINT or ROS shutdown; return the process exit status."""
+    tune_allocator()
     rclpy.init(args=args)
     logger = rclpy.logging.get_logger('solid_node')
     node: SolidNode | None = None

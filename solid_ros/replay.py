@@ -34,6 +34,7 @@ from solid_ros.errors import ConfigError, SolidError
 from solid_ros.evaluation import Evaluation, evaluate, sweep_table
 from solid_ros.poses import PoseError, PoseTrack, associate, load_reference
 from solid_ros.progress import Progress
+from solid_ros.runtime import tune_allocator
 
 __all__ = ['ReplayResult', 'build_parser', 'main', 'replay']
 
@@ -549,6 +550,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.times and not args.poses:
         parser.error('--times needs --poses')
     progress = 'quiet' if args.quiet else args.progress
+    tune_allocator()
     try:
         cfg, ncfg = load_config(args.params, args.node_name, _overrides(args.set))
         result = replay(args.bag, cfg, node_config=ncfg, topic=args.topic,

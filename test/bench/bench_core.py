@@ -20,6 +20,7 @@ import numpy as np  # noqa: E402
 
 from solid_ros import SolidConfig, describe, estimate_yaw  # noqa: E402
 from solid_ros.pointfiles import read_pcd  # noqa: E402
+from solid_ros.runtime import tune_allocator  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[3] / 'shared' / 'data'
 
@@ -39,12 +40,15 @@ def main() -> None:
     args = parser.parse_args()
     scan = read_pcd(DATA / 'kitti' / 'pcd' / '000313.pcd')
     print(f'KITTI 000313: {len(scan)} points, float32 (N, 3), one core')
-    for width in (360.0, 60.0):
-        cfg = SolidConfig(fov_width_deg=width)
-        describe(scan, cfg)  # warm-up
-        ms = _times(lambda cfg=cfg: describe(scan, cfg), args.repeat)
-        print(f'describe, FOV {width:5.1f} deg: median {np.median(ms):6.2f} ms, '
-              f'p90 {np.percentile(ms, 90):6.2f} ms')
+    for label in ('library default allocator', 'tuned allocator (node, replay, demo)'):
+        if label.startswith('tuned'):
+            tune_allocator()
+        for width in (360.0, 60.0):
+            cfg = SolidConfig(fov_width_deg=width)
+            describe(scan, cfg)  # warm-up
+            ms = _times(lambda cfg=cfg: describe(scan, cfg), args.repeat)
+            print(f'describe, FOV {width:5.1f} deg, {label}: median {np.median(ms):5.2f} ms, '
+                  f'p90 {np.percentile(ms, 90):5.2f} ms')
     a = describe(scan).a_solid
     b = np.roll(a, 7)
     us = _times(lambda: estimate_yaw(a, b), args.repeat * 20) * 1e3

@@ -1,0 +1,40 @@
+"""Process-level tuning applied by the executables (node, replay, demo), not by the library.
+
+Each scan allocates a few arrays of about one megabyte. glibc serves blocks that size with
+fresh mmap() calls and returns them at free(), so every scan page-faults its working memory
+in again; on a 120k-point KITTI scan that doubled the descriptor time (6.3 ms instead of 2.9).
+Raising the mmap and trim thresholds keeps those blocks in the heap for reuse.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+
+__all__ = ['tune_allocator']
+
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+_MMAP_THRESHOLD = 32 * 1024 * 1024  # the largest glibc accepts on 64-bit systems
+_TRIM_THRESHOLD = 256 * 1024 * 1024
+
+
+def tune_allocator() -> bool:
+    """Keep large numpy temporaries in the glibc heap between scans.
+
+    Returns:
+        True when glibc accepted the settings; False elsewhere (other C libraries), where
+        nothing changes.
+    """
+    name = ctypes.util.find_library('c')
+    if name is None:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    mallopt.restype = ctypes.c_int
+    ok = mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD) == 1
+    return bool(ok and mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD) == 1)
