@@ -75,7 +75,8 @@ def revisit_table(result: ReplayResult, labels_path: Path,
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog=PROG, description='Show loop closure end to end. Without BAG: simulate a LiDAR '
+        prog=PROG, usage='%(prog)s [options]  |  %(prog)s BAG [solid_replay options]',
+        description='Show loop closure end to end. Without BAG: simulate a LiDAR '
         'drive that revisits places (cached after the first run), replay it through the '
         'detector with the shipped YAML, print scores and write plots. With BAG: the same as '
         'solid_replay BAG [options] (see solid_replay --help).')
@@ -128,8 +129,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print('  revisits by kind  (found = best match within '
               f'{args.radius:g} m, accepted or not)')
         for kind, total, found, yaw_err in table:
+            yaw = 'n/a' if math.isnan(yaw_err) else f'{yaw_err:.2f} deg'
             print(f'    {kind:<8} {found:4d} of {total:4d} found ({found / total:.2f}), '
-                  f'yaw error mean {yaw_err:.2f} deg')
+                  f'yaw error mean {yaw}')
     print(f'  simulated bag     {bag}')
     return 0
 
