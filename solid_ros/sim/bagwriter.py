@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.bagio import ODOMETRY, POINTCLOUD2, BagWriter
 from solid_ros.errors import BagError
-from solid_ros.pointcloud2 import encode_points
 from solid_ros.sim.drive import Drive, DriveConfig, SimScan
 from solid_ros.sim.lidar import avia_like, hdl64
 
 __all__ = ['BagSummary', 'DEMO_DEFAULTS', 'DEMO_SENSORS', 'cache_root', 'demo_dir',
            'ensure_demo_bag',
-           'quaternion', 'read_kitti_poses', 'write_bag', 'write_drive']
+           'read_kitti_poses', 'write_bag', 'write_drive']
 
 POINTS_TOPIC = '/points'
 ODOM_TOPIC = '/odom'
@@ -50,69 +50,6 @@ class BagSummary:
     count: int
     first_ns: int
     last_ns: int
-
-
-def quaternion(rotation: npt.ArrayLike) -> tuple[float, float, float, float]:
-    """Unit quaternion (x, y, z, w) of a 3x3 rotation matrix, w >= 0."""
-    r = np.asarray(rotation, dtype=np.float64)
-    w = 0.5 * np.sqrt(max(1.0 + r[0, 0] + r[1, 1] + r[2, 2], 0.0))
-    x = 0.5 * np.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 0.0))
-    y = 0.5 * np.sqrt(max(1.0 - r[0, 0] + r[1, 1] - r[2, 2], 0.0))
-    z = 0.5 * np.sqrt(max(1.0 - r[0, 0] - r[1, 1] + r[2, 2], 0.0))
-    x = float(np.copysign(x, r[2, 1] - r[1, 2]))
-    y = float(np.copysign(y, r[0, 2] - r[2, 0]))
-    z = float(np.copysign(z, r[1, 0] - r[0, 1]))
-    q = np.array([x, y, z, w])
-    q /= np.linalg.norm(q)
-    return float(q[0]), float(q[1]), float(q[2]), float(q[3])
-
-
-class _Messages:
-    """Builds and serialises the rosbags message objects (ROS 2 Jazzy definitions)."""
-
-    def __init__(self, frame_id: str, odom_frame: str) -> None:
-        from rosbags.typesys import Stores, get_typestore
-
-        self.store = get_typestore(Stores.ROS2_JAZZY)
-        self.t = self.store.types
-        self.frame_id = frame_id
-        self.odom_frame = odom_frame
-
-    def header(self, stamp_ns: int, frame_id: str) -> Any:
-        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-        return self.t['std_msgs/msg/Header'](
-            stamp=self.t['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec),
-            frame_id=frame_id)
-
-    def cloud(self, scan: SimScan) -> bytes:
-        layout = encode_points(scan.cloud)
-        field_type = self.t['sensor_msgs/msg/PointField']
-        fields = [field_type(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
-                  for f in layout.fields]
-        msg = self.t['sensor_msgs/msg/PointCloud2'](
-            header=self.header(scan.stamp_ns, self.frame_id), height=layout.height,
-            width=layout.width, fields=fields, is_bigendian=layout.is_bigendian,
-            point_step=layout.point_step, row_step=layout.row_step, data=layout.data,
-            is_dense=layout.is_dense)
-        return bytes(self.store.serialize_cdr(msg, msg.__msgtype__))
-
-    def odom(self, scan: SimScan) -> bytes:
-        t = self.t
-        qx, qy, qz, qw = quaternion(scan.pose[:3, :3])
-        px, py, pz = (float(v) for v in scan.pose[:3, 3])
-        pose = t['geometry_msgs/msg/PoseWithCovariance'](
-            pose=t['geometry_msgs/msg/Pose'](
-                position=t['geometry_msgs/msg/Point'](x=px, y=py, z=pz),
-                orientation=t['geometry_msgs/msg/Quaternion'](x=qx, y=qy, z=qz, w=qw)),
-            covariance=np.zeros(36))
-        vec = t['geometry_msgs/msg/Vector3']
-        twist = t['geometry_msgs/msg/TwistWithCovariance'](
-            twist=t['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
-                                               angular=vec(x=0.0, y=0.0, z=0.0)),
-            covariance=np.zeros(36))
-        msg = t['nav_msgs/msg/Odometry'](header=self.header(scan.stamp_ns, self.odom_frame),
-                                         child_frame_id=self.frame_id, pose=pose, twist=twist)
-        return bytes(self.store.serialize_cdr(msg, msg.__msgtype__))
 
 
 def write_bag(path: str | Path, scans: Iterable[SimScan], *, frame_id: str = 'lidar',
@@ -136,28 +73,26 @@ def write_bag(path: str | Path, scans: Iterable[SimScan], *, frame_id: str = 'li
     Raises:
         BagError: the bag cannot be created or written.
     """
-    from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.rosbag2.errors import WriterError
 
     path = Path(path)
-    msgs = _Messages(frame_id, odom_frame)
     pose_rows: list[npt.NDArray[np.float64]] = []
     times: list[int] = []
     labels: list[str] = []
     try:
-        with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-            points_conn = writer.add_connection(POINTS_TOPIC, 'sensor_msgs/msg/PointCloud2',
-                                                typestore=msgs.store)
-            odom_conn = writer.add_connection(ODOM_TOPIC, 'nav_msgs/msg/Odometry',
-                                              typestore=msgs.store)
+        with BagWriter(path, 'mcap') as writer:
+            writer.add_topic(POINTS_TOPIC, POINTCLOUD2)
+            writer.add_topic(ODOM_TOPIC, ODOMETRY)
             for scan in scans:
-                if times and scan.stamp_ns <= times[-1]:
-                    raise BagError(f'scan {scan.index}: stamp {scan.stamp_ns} is not after '
+                stamp = scan.stamp_ns
+                if times and stamp <= times[-1]:
+                    raise BagError(f'scan {scan.index}: stamp {stamp} is not after '
                                    f'the previous one ({times[-1]})')
-                writer.write(points_conn, scan.stamp_ns, msgs.cloud(scan))
-                writer.write(odom_conn, scan.stamp_ns, msgs.odom(scan))
+                writer.write(POINTS_TOPIC, stamp, writer.cloud_msg(scan.cloud, stamp, frame_id))
+                writer.write(ODOM_TOPIC, stamp,
+                             writer.odometry_msg(scan.pose, stamp, odom_frame, frame_id))
                 pose_rows.append(scan.pose[:3, :4].reshape(-1))
-                times.append(scan.stamp_ns)
+                times.append(stamp)
                 labels.append(f'{scan.index} {scan.label} {scan.revisit_of}')
     except (WriterError, OSError) as err:
         raise BagError(f'cannot write bag {path}: {err}') from err
