@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros import poses
 from solid_ros.bagio import ODOMETRY, POINTCLOUD2, BagWriter
 from solid_ros.errors import BagError
 from solid_ros.sim.drive import Drive, DriveConfig, SimScan
@@ -108,20 +109,17 @@ def write_bag(path: str | Path, scans: Iterable[SimScan], *, frame_id: str = 'li
 
 
 def read_kitti_poses(path: str | Path) -> npt.NDArray[np.float64]:
-    """Read KITTI 3x4 pose rows into (N, 4, 4) matrices.
+    """Read the KITTI 3x4 pose rows of a demo directory into (N, 4, 4) matrices.
+
+    :func:`solid_ros.poses.read_kitti_poses` with the simulator's error type.
 
     Raises:
-        BagError: the file is missing or not 12 numbers per line.
+        BagError: the file is missing, empty or not 12 numbers per line.
     """
     try:
-        rows = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except (OSError, ValueError) as err:
-        raise BagError(f'cannot read poses {path}: {err}') from err
-    if rows.size and rows.shape[1] != 12:
-        raise BagError(f'{path}: expected 12 numbers per line, got {rows.shape[1]}')
-    out = np.tile(np.eye(4), (len(rows), 1, 1))
-    out[:, :3, :4] = rows.reshape(-1, 3, 4)
-    return out
+        return poses.read_kitti_poses(path)
+    except poses.PoseError as err:
+        raise BagError(str(err)) from err
 
 
 def write_drive(directory: str | Path, drive: Drive) -> Path:
