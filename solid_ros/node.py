@@ -14,7 +14,6 @@ never blocked by descriptor computation.
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 import time
@@ -46,6 +45,7 @@ from solid_ros.detector import LoopDetector
 from solid_ros.errors import CloudError, ConfigError, SolidError
 from solid_ros.node_params import apply_changes, declare_all
 from solid_ros.pointcloud2 import cloud_to_xyz
+from solid_ros.poses import PoseError, odometry_to_pose
 from solid_ros.runtime import tune_allocator
 
 __all__ = ['NodeStats', 'SolidNode', 'main']
@@ -71,20 +71,6 @@ class NodeStats:
 
 def _stamp_ns(stamp: Any) -> int:
     return int(stamp.sec) * _NS + int(stamp.nanosec)
-
-
-def _odom_pose(msg: Odometry) -> npt.NDArray[np.float64]:
-    """Return T_world_sensor (4x4) of an Odometry message."""
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-    x, y, z, w = q.x, q.y, q.z, q.w
-    n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
-    x, y, z, w = x / n, y / n, z / n, w / n
-    t = np.eye(4)
-    t[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    t[:3, 3] = [p.x, p.y, p.z]
-    return t
 
 
 class SolidNode(Node):
@@ -199,8 +185,14 @@ class SolidNode(Node):
             self._cv.notify_all()
 
     def _on_odom(self, msg: Odometry) -> None:
+        try:
+            pose = odometry_to_pose(msg)
+        except PoseError as err:
+            self.get_logger().warning(f'odometry message skipped: {err}',
+                                      throttle_duration_sec=_WARN_THROTTLE_SEC)
+            return
         with self._cv:
-            self._odom.append((_stamp_ns(msg.header.stamp), _odom_pose(msg)))
+            self._odom.append((_stamp_ns(msg.header.stamp), pose))
             self._odom_frame = msg.header.frame_id
             self._cv.notify_all()
 

@@ -140,10 +140,10 @@ def stamp_of(msg: Any) -> int:
 def offline(messages: list[tuple[str, Any]], config: SolidConfig,
             detector: LoopDetector | None = None) -> list[tuple[int, int, int, int, int]]:
     """What the core finds for the same clouds (poses paired by exact stamp)."""
-    from solid_ros.node import _odom_pose
+    from solid_ros.poses import odometry_to_pose
 
     det = detector or LoopDetector(config)
-    poses = {stamp_of(m): _odom_pose(m) for kind, m in messages if kind == 'odom'}
+    poses = {stamp_of(m): odometry_to_pose(m) for kind, m in messages if kind == 'odom'}
     found = []
     for kind, m in messages:
         if kind != 'points':
