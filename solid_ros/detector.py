@@ -32,6 +32,7 @@ from solid_ros.database import DescriptorDatabase, Match
 from solid_ros.descriptor import Descriptor, describe
 from solid_ros.errors import ConfigError, SolidError
 from solid_ros.matching import estimate_yaw
+from solid_ros.poses import matrix_to_quaternion
 
 __all__ = ['LoopCandidate', 'LoopDetector', 'pose_to_vector']
 
@@ -80,13 +81,10 @@ def pose_to_vector(pose: Any) -> npt.NDArray[np.float64]:
     if arr.shape in ((4, 4), (3, 4)):
         if not np.all(np.isfinite(arr)):
             raise SolidError('pose matrix holds NaN or infinite values')
-        from scipy.spatial.transform import Rotation
-
-        try:
-            quat = Rotation.from_matrix(arr[:3, :3]).as_quat()
-        except ValueError as err:
-            raise SolidError(f'pose rotation is not a rotation matrix: {err}') from err
-        return np.concatenate([arr[:3, 3], quat])
+        if not np.linalg.det(arr[:3, :3]) > 0.0:
+            raise SolidError('pose rotation is not a rotation matrix: non-positive '
+                             f'determinant {arr[:3, :3].tolist()}')
+        return np.concatenate([arr[:3, 3], matrix_to_quaternion(arr[:3, :3])])
     arr = arr.ravel()
     if arr.shape != (7,):
         raise SolidError(f'pose must be a 4x4 or 3x4 matrix or 7 values (x y z qx qy qz qw), '
