@@ -311,33 +311,24 @@ def test_hku1_bag_replay_finds_the_revisit(harness: Callable[..., Harness],
 
 def test_bag_written_in_tmp_path(harness: Callable[..., Harness], hku1: list[tuple[str, Any]],
                                  tmp_path: Path) -> None:
-    from rosbags.rosbag2 import Writer
-    from rosbags.typesys import Stores, get_typestore
+    from solid_ros.bagio import write_cloud_bag
+    from solid_ros.pointcloud2 import FLOAT64, CloudLayout, Field
 
-    store = get_typestore(Stores.ROS2_JAZZY)
-    cls = store.types['sensor_msgs/msg/PointCloud2']
-    field_cls = store.types['sensor_msgs/msg/PointField']
-    header_cls = store.types['std_msgs/msg/Header']
-    time_cls = store.types['builtin_interfaces/msg/Time']
+    def padded_f8(m: PointCloud2) -> tuple[CloudLayout, int]:
+        # Rewrite as float64 x y z with padding, to exercise another layout end to end.
+        xyz = np.asarray(cloud_to_xyz(m), dtype='<f8')
+        rec = np.zeros(len(xyz), dtype=[('x', '<f8'), ('y', '<f8'), ('z', '<f8'),
+                                        ('pad', 'u1', 8)])
+        rec['x'], rec['y'], rec['z'] = xyz.T
+        layout = CloudLayout(fields=tuple(Field(n, 8 * i, FLOAT64) for i, n in enumerate('xyz')),
+                             width=len(xyz), point_step=32, row_step=32 * len(xyz),
+                             data=rec.view(np.uint8).reshape(-1))
+        return layout, stamp_of(m)
+
     bag = tmp_path / 'replay_bag'
     clouds = [m for k, m in hku1 if k == 'points']
-    with Writer(bag, version=9) as writer:
-        conn = writer.add_connection('/lidar', 'sensor_msgs/msg/PointCloud2', typestore=store)
-        for m in clouds:
-            # Rewrite as float64 x y z with padding, to exercise another layout end to end.
-            xyz = np.asarray(cloud_to_xyz(m), dtype='<f8')
-            rec = np.zeros(len(xyz), dtype=[('x', '<f8'), ('y', '<f8'), ('z', '<f8'),
-                                            ('pad', 'u1', 8)])
-            rec['x'], rec['y'], rec['z'] = xyz.T
-            out = cls(header=header_cls(stamp=time_cls(sec=m.header.stamp.sec,
-                                                       nanosec=m.header.stamp.nanosec),
-                                        frame_id='lidar'),
-                      height=1, width=len(xyz),
-                      fields=[field_cls(name=n, offset=8 * i, datatype=8, count=1)
-                              for i, n in enumerate('xyz')],
-                      is_bigendian=False, point_step=32, row_step=32 * len(xyz),
-                      data=rec.view(np.uint8).reshape(-1), is_dense=True)
-            writer.write(conn, stamp_of(m), store.serialize_cdr(out, cls.__msgtype__))
+    write_cloud_bag(bag, [padded_f8(m) for m in clouds], 'sqlite3', points_topic='/lidar',
+                    odom_topic=None)
     messages = read_bag(bag, points_topic='/lidar', odom_topic=None)
     assert len(messages) == len(clouds)
     h = harness([Parameter('use_odom', value=False)], remap=['points:=/points'])
