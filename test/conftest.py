@@ -1,10 +1,15 @@
-"""Shared fixtures: the real data set beside the project and small loaders."""
+"""Shared fixtures: the real data set beside the project, an rclpy context."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / 'shared' / 'data'
 
@@ -15,3 +20,17 @@ def shared_data() -> Path:
     if not (SHARED_DATA / 'README.md').is_file():
         pytest.skip(f'real data not found at {SHARED_DATA} (CI provides ../shared/data)')
     return SHARED_DATA
+
+
+@pytest.fixture()
+def context() -> Iterator[Context]:
+    """A fresh rclpy context for one test (skips when rclpy is absent), shut down after it."""
+    rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
+    from rclpy.context import Context
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        yield ctx
+    finally:
+        rclpy.try_shutdown(context=ctx)

@@ -61,16 +61,6 @@ def domain_id() -> Iterator[None]:
         os.environ['ROS_DOMAIN_ID'] = old
 
 
-@pytest.fixture()
-def context() -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx)
-    try:
-        yield ctx
-    finally:
-        rclpy.try_shutdown(context=ctx)
-
-
 # -- message helpers ---------------------------------------------------------------------------
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -25,16 +24,6 @@ from solid_ros.node_params import (  # noqa: E402
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 PRESETS = sorted(CONFIG_DIR.glob('*.yaml'))
-
-
-@pytest.fixture()
-def context() -> Iterator[Context]:
-    ctx = Context()
-    rclpy.init(context=ctx)
-    try:
-        yield ctx
-    finally:
-        rclpy.try_shutdown(context=ctx)
 
 
 def _node(ctx: Context, *, overrides: list[Parameter] | None = None,
