@@ -170,6 +170,9 @@ def main() -> int:
         except subprocess.TimeoutExpired:
             proc.kill()
         executor.shutdown()
+        # A spin still inside rcl at interpreter exit aborts the process ("terminate called
+        # without an active exception"): let it return first.
+        spinner.join(timeout=10.0)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
