@@ -31,6 +31,7 @@ from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy_msgs import make_cloud  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
@@ -40,7 +41,7 @@ from solid_ros.candidates import decode_candidates  # noqa: E402
 from solid_ros.config import SolidConfig  # noqa: E402
 from solid_ros.detector import LoopDetector  # noqa: E402
 from solid_ros.node import SolidNode  # noqa: E402
-from solid_ros.pointcloud2 import cloud_to_xyz, encode_points  # noqa: E402
+from solid_ros.pointcloud2 import cloud_to_xyz  # noqa: E402
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 AVIA = CONFIG_DIR / 'avia.yaml'
@@ -62,21 +63,6 @@ def domain_id() -> Iterator[None]:
 
 
 # -- message helpers ---------------------------------------------------------------------------
-
-
-def make_cloud(points: np.ndarray, stamp_ns: int, frame: str = 'lidar') -> PointCloud2:
-    """rclpy PointCloud2 of float32 x y z (unorganised, little-endian)."""
-    lay = encode_points(np.asarray(points)[:, :3])
-    msg = PointCloud2()
-    msg.header.frame_id = frame
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    msg.height, msg.width = lay.height, lay.width
-    msg.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
-                  for f in lay.fields]
-    msg.is_bigendian, msg.is_dense = lay.is_bigendian, lay.is_dense
-    msg.point_step, msg.row_step = lay.point_step, lay.row_step
-    msg.data = array.array('B', lay.data.tobytes())
-    return msg
 
 
 def from_rosbags_cloud(m: Any) -> PointCloud2:

@@ -321,7 +321,6 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
 
 def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, int]]:
     """Publish a bag's clouds and odometry to an in-process solid_node; collect its output."""
-    import array
     import os
     import random
     import threading
@@ -333,7 +332,8 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2, PointField
+    from rclpy_msgs import make_cloud
+    from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import Float64MultiArray
 
     from solid_ros.bagio import Bag
@@ -348,16 +348,7 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
         odom = dict(zip(track.stamps_ns.tolist(), track.poses))
         for scan in b.clouds('/points'):
             assert scan.points is not None
-            lay = encode_points(scan.points)
-            cloud = PointCloud2()
-            cloud.header.frame_id = scan.frame_id
-            cloud.header.stamp.sec, cloud.header.stamp.nanosec = divmod(scan.stamp_ns, 10**9)
-            cloud.height, cloud.width = lay.height, lay.width
-            cloud.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype,
-                                       count=f.count) for f in lay.fields]
-            cloud.point_step, cloud.row_step = lay.point_step, lay.row_step
-            cloud.is_dense = lay.is_dense
-            cloud.data = array.array('B', lay.data.tobytes())
+            cloud = make_cloud(scan.points, scan.stamp_ns, scan.frame_id)
             pose = odom[scan.stamp_ns]
             o = Odometry()
             o.header = cloud.header
