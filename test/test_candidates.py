@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
@@ -17,23 +16,12 @@ from solid_ros.candidates import (
     split_stamp,
     to_rows,
 )
-
-
-@dataclass
-class _Cand:
-    query_index: int
-    match_index: int
-    query_stamp_ns: int
-    match_stamp_ns: int
-    match_session: int
-    distance: float
-    yaw: float
-    margin: float
-
+from solid_ros.detector import LoopCandidate
 
 CANDS = [
-    _Cand(313, 20, 1_700_000_123_456_789_012, 1_700_000_001_000_000_001, 0, 0.031, -1.25, 0.2),
-    _Cand(313, 57, 1_700_000_123_456_789_012, 999_999_999, 3, 0.049, 3.14159, 0.0),
+    LoopCandidate(313, 20, 1_700_000_123_456_789_012, 1_700_000_001_000_000_001, 0, 0.031, -1.25,
+                  0.2),
+    LoopCandidate(313, 57, 1_700_000_123_456_789_012, 999_999_999, 3, 0.049, 3.14159, 0.0),
 ]
 
 
