@@ -108,7 +108,9 @@ class SolidNode(Node):
                        else ReliabilityPolicy.BEST_EFFORT)
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self._cfg.qos_depth,
                          reliability=reliability)
-        self._pub_cands = self.create_publisher(Float64MultiArray, '~/loop_candidates', 10)
+        # Deep history: a reliable writer drops unacknowledged samples beyond it, and a back
+        # end must not miss a loop when a burst of candidates meets a slow subscriber.
+        self._pub_cands = self.create_publisher(Float64MultiArray, '~/loop_candidates', 100)
         self._pub_markers = self.create_publisher(MarkerArray, '~/loop_markers', 10)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(PointCloud2, 'points', self._on_points, qos)
