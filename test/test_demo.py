@@ -23,14 +23,25 @@ def test_demo_runs_end_to_end_and_reuses_its_cache(tmp_path: Path,
     assert report['metrics']['recall_at_1'] > 0.7
     for png in ('pr_curve.png', 'trajectory.png', 'distance_hist.png', 'yaw_error_hist.png'):
         assert (out / png).stat().st_size > 1000
-    same = next(line for line in text.splitlines() if line.strip().startswith('same'))
-    found, total = (int(v) for v in same.split()[1:4:2])
-    assert found / total >= 0.9
+    recall, yaw_error = _same_direction(text)
+    assert recall >= 0.9 and yaw_error < 2.0
+    assert 'reverse' in text  # reported whether found or not
     bags = list(cache.rglob('metadata.yaml'))
     assert len(bags) == 1
     mtime = bags[0].stat().st_mtime_ns
-    assert demo.main(args) == 0  # second run replays the cached bag
+    # Second run: the cached bag, clipped to 90 degrees.
+    assert demo.main([*args, '--fov', '90']) == 0
     assert bags[0].stat().st_mtime_ns == mtime
+    recall, yaw_error = _same_direction(capsys.readouterr().out)
+    assert recall >= 0.8 and yaw_error < 2.0
+
+
+def _same_direction(text: str) -> tuple[float, float]:
+    """Recall and mean yaw error of same-direction revisits from the demo's table."""
+    line = next(row for row in text.splitlines() if row.strip().startswith('same '))
+    words = line.split()
+    found, total = int(words[1]), int(words[3])
+    return found / total, float(words[words.index('mean') + 1])
 
 
 def test_demo_with_a_user_bag_is_solid_replay(tmp_path: Path,
