@@ -61,6 +61,25 @@ def test_round_trip(tmp_path: Path, fmt: str) -> None:
     np.testing.assert_allclose(track.poses, np.stack([s[2] for s in scans]), atol=1e-9)
 
 
+def test_mcap_bag_reads_with_the_reference_mcap_library(tmp_path: Path) -> None:
+    """Bags written here open in other MCAP tools (Foxglove, ros2 bag): check with mcap."""
+    from mcap.reader import make_reader
+
+    path = write_cloud_bag(tmp_path / 'bag', _scans(), 'mcap')
+    (storage,) = path.glob('*.mcap')
+    with storage.open('rb') as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert {t: (c.message_encoding, summary.schemas[c.schema_id].name)
+                for t, c in channels.items()} == {
+            '/points': ('cdr', 'sensor_msgs/msg/PointCloud2'),
+            '/odom': ('cdr', 'nav_msgs/msg/Odometry')}
+        stamps = [m.log_time for _, c, m in reader.iter_messages() if c.topic == '/points']
+    assert stamps == [s[1] for s in _scans()]
+
+
 def test_storage_file_path_is_accepted(tmp_path: Path) -> None:
     path = write_cloud_bag(tmp_path / 'bag', _scans(2), 'mcap')
     for alias in (path / 'bag.mcap', path / 'metadata.yaml'):
