@@ -13,7 +13,10 @@ setup() {
     return
   fi
   echo "setting up $venv (first run only)..." >&2
-  python3 -m venv "$venv"
+  if ! python3 -m venv "$venv"; then
+    echo "run.sh: cannot create $venv; on Debian/Ubuntu: sudo apt install python3-venv" >&2
+    exit 1
+  fi
   "$venv/bin/python" -m pip install --quiet --upgrade pip
   "$venv/bin/python" -m pip install --quiet -e '.[test,ros-pypi]'
   touch "$stamp"
