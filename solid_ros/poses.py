@@ -287,6 +287,6 @@ def associate(query_ns: npt.ArrayLike, ref_ns: npt.ArrayLike,
     dr = np.abs(q - rs[pos])
     pick = np.where(dr < dl, pos, left)
     best = np.minimum(dl, dr)
-    out = order[pick].astype(np.intp)
+    out: npt.NDArray[np.intp] = order[pick].astype(np.intp)
     out[best > tolerance_ns] = -1
     return out

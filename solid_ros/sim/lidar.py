@@ -93,8 +93,10 @@ class LidarModel:
     def elevations(self) -> FloatArray:
         """Ring elevations in radians, lowest first, shape (rings,)."""
         if self.rings == 1:
-            return np.array([math.radians(0.5 * (self.fov_up_deg + self.fov_down_deg))])
-        return np.radians(np.linspace(self.fov_down_deg, self.fov_up_deg, self.rings))
+            one: FloatArray = np.array([math.radians(0.5 * (self.fov_up_deg + self.fov_down_deg))])
+            return one
+        rings: FloatArray = np.radians(np.linspace(self.fov_down_deg, self.fov_up_deg, self.rings))
+        return rings
 
     def azimuths(self) -> FloatArray:
         """Column azimuths in the sensor frame, radians, shape (points_per_ring,)."""
@@ -103,7 +105,8 @@ class LidarModel:
             full: FloatArray = np.radians(c - 180.0 + np.arange(n) * (360.0 / n))
             return full
         half = 0.5 * self.fov_width_deg
-        return np.radians(np.linspace(c - half, c + half, n))
+        wedge: FloatArray = np.radians(np.linspace(c - half, c + half, n))
+        return wedge
 
     def replace(self, **changes: Any) -> LidarModel:
         """Return a validated copy with some fields changed."""

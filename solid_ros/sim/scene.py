@@ -152,7 +152,8 @@ def _prism_sdf(d_xy: FloatArray, z: FloatArray, z_low: FloatArray,
     zc, hz = 0.5 * (z_low + z_high), 0.5 * (z_high - z_low)
     d_z = np.abs(z[:, None] - zc[None, :]) - hz[None, :]
     outside = np.hypot(np.maximum(d_xy, 0.0), np.maximum(d_z, 0.0))
-    return outside + np.minimum(np.maximum(d_xy, d_z), 0.0)
+    dist: FloatArray = outside + np.minimum(np.maximum(d_xy, d_z), 0.0)
+    return dist
 
 
 def _box_sdf(q: FloatArray, boxes: FloatArray) -> FloatArray:

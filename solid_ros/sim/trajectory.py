@@ -110,7 +110,8 @@ def build_trajectory(grid: StreetGrid, seed: int = 0, spacing: float = 2.0,
     rng = np.random.default_rng([seed, 0x7AC])
 
     # Fine centre line, one sample every _STEP metres, with the segment index of each sample.
-    pieces, seg_ids = [], []
+    pieces: list[npt.NDArray[np.float64]] = []
+    seg_ids: list[npt.NDArray[np.int64]] = []
     for k, (a, b) in enumerate(zip(route[:-1], route[1:])):
         p0, p1 = np.array(grid.node(*a)), np.array(grid.node(*b))
         n = max(int(round(np.linalg.norm(p1 - p0) / _STEP)), 1)
