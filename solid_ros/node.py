@@ -46,13 +46,14 @@ from solid_ros.errors import CloudError, ConfigError, SolidError
 from solid_ros.node_params import apply_changes, declare_all
 from solid_ros.pointcloud2 import cloud_to_xyz
 from solid_ros.poses import PoseError, odometry_to_pose
-from solid_ros.runtime import tune_allocator
+from solid_ros.runtime import tune_allocator, tune_thread_switching
 
 __all__ = ['NodeStats', 'SolidNode', 'main']
 
 _NS = 1_000_000_000
 _ODOM_BUFFER = 512
 _ODOM_WAIT_SEC = 0.25
+_ODOM_MAX_MISSES = 3  # waits in a row that saw no odometry before the node stops waiting
 _WARN_THROTTLE_SEC = 5.0
 
 
@@ -101,6 +102,7 @@ class SolidNode(Node):
         self._stop = False
         self._odom: deque[tuple[int, npt.NDArray[np.float64]]] = deque(maxlen=_ODOM_BUFFER)
         self._odom_frame = ''
+        self._odom_misses = 0
         self._positions: dict[int, npt.NDArray[np.float64]] = {}
         self._edges: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = []
 
@@ -196,6 +198,7 @@ class SolidNode(Node):
         with self._cv:
             self._odom.append((_stamp_ns(msg.header.stamp), pose))
             self._odom_frame = msg.header.frame_id
+            self._odom_misses = 0
             self._cv.notify_all()
 
     def _pose_for(self, stamp_ns: int) -> npt.NDArray[np.float64] | None:
@@ -205,12 +208,18 @@ class SolidNode(Node):
         tol = int(self._cfg.odom_tolerance_sec * _NS)
         deadline = time.monotonic() + _ODOM_WAIT_SEC
         # Odometry often arrives just after its cloud: wait for one at or past it, but only
-        # when someone publishes odometry (an unused odom topic must not slow every scan).
+        # when someone publishes odometry (an unused odom topic must not slow every scan),
+        # and not while a silent publisher has let several waits pass without a message.
         publishing = self.count_publishers(self._odom_sub.topic_name) > 0
         with self._cv:
-            while (publishing and (not self._odom or self._odom[-1][0] < stamp_ns)
+            waited = False
+            while (publishing and self._odom_misses < _ODOM_MAX_MISSES
+                   and (not self._odom or self._odom[-1][0] < stamp_ns)
                    and not self._stop and time.monotonic() < deadline):
+                waited = True
                 self._cv.wait(deadline - time.monotonic())
+            if waited and (not self._odom or self._odom[-1][0] < stamp_ns):
+                self._odom_misses += 1
             best = min(self._odom, key=lambda sp: abs(sp[0] - stamp_ns), default=None)
         if best is None or abs(best[0] - stamp_ns) > tol:
             return None
@@ -390,6 +399,7 @@ def _save_atomic(detector: LoopDetector, path: str) -> None:
 def main(args: list[str] | None = None) -> int:
     """Run ``solid_node`` until SIGINT or ROS shutdown; return the process exit status."""
     tune_allocator()
+    tune_thread_switching()
     rclpy.init(args=args)
     logger = rclpy.logging.get_logger('solid_node')
     node: SolidNode | None = None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -28,9 +29,15 @@ def context() -> Iterator[Context]:
     rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
     from rclpy.context import Context
 
+    from solid_ros.runtime import tune_thread_switching
+
+    # In-process nodes get the thread switching solid_node's main() sets for itself.
+    interval = sys.getswitchinterval()
+    tune_thread_switching()
     ctx = Context()
     rclpy.init(context=ctx)
     try:
         yield ctx
     finally:
         rclpy.try_shutdown(context=ctx)
+        sys.setswitchinterval(interval)

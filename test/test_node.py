@@ -182,6 +182,7 @@ class Harness:
                ) -> None:
         """Publish in order; ``bad[i]`` is published before the i-th cloud."""
         sent = self.node.stats.received
+        loops0, rows0 = self.node.stats.loops, len(self.candidates)
         n = 0
         for kind, msg in messages:
             if kind == 'odom':
@@ -197,7 +198,9 @@ class Harness:
             self.wait_for(lambda s=sent: self.node.stats.received >= s - 50, 'delivery')
         self.wait_for(lambda: self.node.stats.received >= sent, 'all clouds received')
         assert self.node.wait_idle(TIMEOUT)
-        time.sleep(0.3)  # let the last candidate messages arrive
+        # Every candidate row the node published must arrive (a fixed sleep raced under load).
+        self.wait_for(lambda: len(self.candidates) - rows0 >= self.node.stats.loops - loops0,
+                      'all candidate messages')
 
     def call(self, service: str) -> Trigger.Response:
         cli = self.client.create_client(Trigger, service)
