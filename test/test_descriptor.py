@@ -33,10 +33,10 @@ def test_reproduces_authors_golden_descriptors(shared_data: Path, frame: int) ->
 def test_golden_cosine_similarities(shared_data: Path) -> None:
     desc = {f: describe(read_pcd(shared_data / 'kitti' / 'pcd' / f'000{f}.pcd'))
             for f in (313, 314, 315)}
-    assert 1.0 - cosine_distance(desc[313].r_solid, desc[314].r_solid) == pytest.approx(
-        0.98338, abs=1e-4)
-    assert 1.0 - cosine_distance(desc[313].r_solid, desc[315].r_solid) == pytest.approx(
-        0.96573, abs=1e-4)
+    similarity_314 = 1.0 - cosine_distance(desc[313].r_solid, desc[314].r_solid)
+    similarity_315 = 1.0 - cosine_distance(desc[313].r_solid, desc[315].r_solid)
+    assert similarity_314 == pytest.approx(0.98338, abs=1e-4)
+    assert similarity_315 == pytest.approx(0.96573, abs=1e-4)
 
 
 def test_descriptor_parts_are_consistent(shared_data: Path) -> None:
