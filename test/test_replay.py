@@ -323,6 +323,7 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
     """Publish a bag's clouds and odometry to an in-process solid_node; collect its output."""
     import os
     import random
+    import sys
     import threading
     import time
 
@@ -340,6 +341,7 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
     from solid_ros.candidates import decode_candidates
     from solid_ros.node import SolidNode
     from solid_ros.poses import matrix_to_quaternion
+    from solid_ros.runtime import tune_thread_switching
 
     msgs: list[tuple[str, object]] = []
     with Bag(bag) as b:
@@ -361,6 +363,8 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
 
     old_domain = os.environ.get('ROS_DOMAIN_ID')
     os.environ['ROS_DOMAIN_ID'] = str(random.randint(101, 200))
+    old_interval = sys.getswitchinterval()
+    tune_thread_switching()  # as solid_node's main() does
     ctx = Context()
     rclpy.init(context=ctx)
     got: list[dict] = []
@@ -395,7 +399,7 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
                     sent += 1
                     wait(lambda s=sent: node.stats.received >= s, 'delivery')
             assert node.wait_idle(120.0)
-            time.sleep(0.5)  # the last candidate messages
+            wait(lambda: len(got) >= node.stats.loops, 'every published candidate')
         finally:
             executor.shutdown()
             node.destroy_node()
@@ -403,6 +407,7 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
             thread.join(timeout=10.0)
     finally:
         rclpy.try_shutdown(context=ctx)
+        sys.setswitchinterval(old_interval)
         if old_domain is None:
             os.environ.pop('ROS_DOMAIN_ID', None)
         else:
