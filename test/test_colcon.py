@@ -126,23 +126,18 @@ def test_installed_node_starts_with_each_yaml(installed: Path, domain: int,
     assert code == 0, err
 
 
-def test_installed_node_refuses_bad_parameter_file(installed: Path, domain: int,
-                                                   tmp_path: Path) -> None:
+@pytest.mark.parametrize('value, words', [
+    ('distance_threshold: 3.0', ('distance_threshold', '[0.0, 2.0]')),  # out of range
+    ('fov_width_deg: 90', ('fov_width_deg', '90.0')),  # integer for a double
+])
+def test_installed_node_refuses_bad_parameter_file(installed: Path, domain: int, tmp_path: Path,
+                                                   value: str, words: tuple[str, str]) -> None:
     exe = installed / 'lib' / 'solid_ros' / 'solid_node'
     bad = tmp_path / 'bad.yaml'
-    bad.write_text('solid_node:\n  ros__parameters:\n    distance_threshold: 3.0\n')
+    bad.write_text(f'solid_node:\n  ros__parameters:\n    {value}\n')
     proc = subprocess.run([str(exe), '--ros-args', '--params-file', str(bad)],
                           env=_env(installed, domain), capture_output=True, text=True,
                           timeout=60)
     assert proc.returncode != 0
-    assert 'distance_threshold' in proc.stderr and '[0.0, 2.0]' in proc.stderr
-    assert 'Traceback' not in proc.stderr
-
-    wrong_type = tmp_path / 'int.yaml'
-    wrong_type.write_text('solid_node:\n  ros__parameters:\n    fov_width_deg: 90\n')
-    proc = subprocess.run([str(exe), '--ros-args', '--params-file', str(wrong_type)],
-                          env=_env(installed, domain), capture_output=True, text=True,
-                          timeout=60)
-    assert proc.returncode != 0
-    assert 'fov_width_deg' in proc.stderr and '90.0' in proc.stderr
+    assert all(word in proc.stderr for word in words), proc.stderr
     assert 'Traceback' not in proc.stderr
