@@ -27,7 +27,7 @@ cmd="${1:-}"
 case "$cmd" in
   demo)
     setup
-    exec "$venv/bin/python" -m solid_ros.demo "$@"
+    exec "$venv/bin/python" -m solid_ros.tools.demo "$@"
     ;;
   test)
     setup

@@ -28,9 +28,9 @@ setup(
     license='BSD-3-Clause',
     entry_points={
         'console_scripts': [
-            'solid_node = solid_ros.node:main',
-            'solid_replay = solid_ros.replay:main',
-            'solid_demo = solid_ros.demo:main',
+            'solid_node = solid_ros.ros.node:main',
+            'solid_replay = solid_ros.tools.replay:main',
+            'solid_demo = solid_ros.tools.demo:main',
         ],
     },
 )

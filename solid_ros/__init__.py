@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
-from solid_ros.config import NodeConfig, SolidConfig
-from solid_ros.descriptor import Descriptor, describe
-from solid_ros.detector import LoopCandidate, LoopDetector
-from solid_ros.errors import BagError, CloudError, ConfigError, DatabaseError, SolidError
-from solid_ros.matching import cosine_distance, estimate_yaw
+from solid_ros.core.config import NodeConfig, SolidConfig
+from solid_ros.core.descriptor import Descriptor, describe
+from solid_ros.core.detector import LoopCandidate, LoopDetector
+from solid_ros.core.errors import (
+    BagError,
+    CloudError,
+    ConfigError,
+    DatabaseError,
+    PoseError,
+    SolidError,
+)
+from solid_ros.core.matching import cosine_distance, estimate_yaw
 
 __all__ = [
     'BagError', 'CloudError', 'ConfigError', 'DatabaseError', 'Descriptor', 'LoopCandidate',
-    'LoopDetector', 'NodeConfig', 'SolidConfig', 'SolidError', 'cosine_distance', 'describe',
+    'LoopDetector', 'NodeConfig', 'PoseError', 'SolidConfig', 'SolidError', 'cosine_distance',
+    'describe',
     'estimate_yaw',
 ]
 __version__ = '0.1.0'

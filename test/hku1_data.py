@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.bagio import Bag
-from solid_ros.poses import read_kitti_poses
+from solid_ros.formats.bags import Bag
+from solid_ros.formats.poses import read_kitti_poses
 
 # Livox Avia: 70.4 x 77.2 deg FOV. On this bag a 0.2 m voxel grid on top of the recorded one
 # gave the best Recall@1 / F1 of the settings tried (see the detector report).

@@ -7,7 +7,7 @@ import array
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
-from solid_ros.pointcloud2 import encode_points
+from solid_ros.formats.pointcloud2 import encode_points
 
 
 def make_cloud(points: np.ndarray, stamp_ns: int, frame: str = 'lidar') -> PointCloud2:

@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros import poses
-from solid_ros.bagio import ODOMETRY, POINTCLOUD2, BagWriter
-from solid_ros.errors import BagError
+from solid_ros.core.errors import BagError
+from solid_ros.formats import poses
+from solid_ros.formats.bags import ODOMETRY, POINTCLOUD2, BagWriter
 from solid_ros.sim.drive import Drive, DriveConfig, SimScan
 from solid_ros.sim.lidar import avia_like, hdl64
 

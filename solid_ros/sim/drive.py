@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.errors import ConfigError
+from solid_ros.core.errors import ConfigError
 from solid_ros.sim.lidar import LidarModel, cast_scan, sensor_model
 from solid_ros.sim.scene import Scene, StreetGrid, build_scene
 from solid_ros.sim.trajectory import Trajectory, build_trajectory

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.errors import ConfigError
+from solid_ros.core.errors import ConfigError
 from solid_ros.sim.scene import GROUND_REFLECTIVITY, Scene
 
 __all__ = ['LidarModel', 'PRESETS', 'avia_like', 'cast_scan', 'hdl64', 'sensor_model']

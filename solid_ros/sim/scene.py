@@ -14,7 +14,7 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.errors import ConfigError
+from solid_ros.core.errors import ConfigError
 
 __all__ = ['Scene', 'StreetGrid', 'build_scene']
 

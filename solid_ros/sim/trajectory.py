@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.errors import ConfigError
+from solid_ros.core.errors import ConfigError
 from solid_ros.sim.scene import StreetGrid
 
 __all__ = ['DEFAULT_ROUTE', 'LABELS', 'Trajectory', 'build_trajectory', 'revisit_labels']

@@ -19,8 +19,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from solid_ros import SolidConfig, describe, estimate_yaw  # noqa: E402
-from solid_ros.pointfiles import read_pcd  # noqa: E402
-from solid_ros.runtime import tune_allocator  # noqa: E402
+from solid_ros.formats.pointfiles import read_pcd  # noqa: E402
+from solid_ros.tools.runtime import tune_allocator  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[3] / 'shared' / 'data'
 

@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python test/bench/bench_node_latency.py [--duration 30] [--rates 10,15,20,30]
 
-The node runs in its own process (``python -m solid_ros.node``, HDL-64 preset) with settings
+The node runs in its own process (``python -m solid_ros.ros.node``, HDL-64 preset) with settings
 that make every scan a query with one candidate (exclude_recent_frames 0, threshold 2.0), so
 each published cloud yields one candidate message. The publisher sends KITTI scan 313
 (~121k points), rotated and jittered per message, at 10 Hz for ``--duration`` seconds and
@@ -64,14 +64,14 @@ def main() -> int:
     from sensor_msgs.msg import PointCloud2, PointField
     from std_msgs.msg import Float64MultiArray
 
-    from solid_ros.candidates import decode_candidates
-    from solid_ros.pointfiles import read_pcd
+    from solid_ros.formats.candidates import decode_candidates
+    from solid_ros.formats.pointfiles import read_pcd
 
     points = read_pcd(pcd).astype(np.float64)
     variants = _variants(points, 16)
     domain = str(random.randint(1, 100))
     os.environ['ROS_DOMAIN_ID'] = domain
-    node_cmd = [sys.executable, '-m', 'solid_ros.node', '--ros-args', '--params-file',
+    node_cmd = [sys.executable, '-m', 'solid_ros.ros.node', '--ros-args', '--params-file',
                 str(ROOT / 'config' / 'hdl64.yaml'), '-p', 'exclude_recent_frames:=0',
                 '-p', 'distance_threshold:=2.0', '-p', 'qos_reliability:=reliable',
                 '-p', 'use_odom:=false', '-p', 'diagnostics_period_sec:=0.5']

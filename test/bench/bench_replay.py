@@ -23,9 +23,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from solid_ros.bagio import Bag, write_cloud_bag  # noqa: E402
-from solid_ros.config import SolidConfig  # noqa: E402
-from solid_ros.replay import replay  # noqa: E402
+from solid_ros.core.config import SolidConfig  # noqa: E402
+from solid_ros.formats.bags import Bag, write_cloud_bag  # noqa: E402
+from solid_ros.tools.replay import replay  # noqa: E402
 
 HKU1 = ROOT.parent / 'shared' / 'data' / 'hku1' / 'bag'
 

@@ -1,0 +1,324 @@
+"""One typed, validated configuration schema for the core, the node and the offline tools.
+
+Every setting is a dataclass field whose metadata carries its description, allowed range or
+choices and whether it is read-only at runtime (it changes descriptor shape or values). The ROS
+node declares its parameters from this metadata, the YAML file holds the same keys under
+``<node>: ros__parameters:``, and the offline tools load that YAML with :meth:`from_yaml`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+from solid_ros.core.errors import ConfigError
+
+__all__ = ['ParamSpec', 'SolidConfig', 'NodeConfig', 'load_yaml_parameters', 'param_specs']
+
+_C = TypeVar('_C', bound='_Schema')
+
+# Keys every ROS node accepts; a shared YAML file may carry them.
+_ROS_STANDARD_KEYS = frozenset({'use_sim_time', 'qos_overrides', 'start_type_description_service'})
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """Description of one setting, as used for validation and ROS parameter declaration."""
+
+    name: str
+    type: type
+    default: Any
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] | None = None
+    read_only: bool = False
+    # Whether changing it changes descriptor values (saved databases record these).
+    shape: bool = False
+
+    def range_text(self) -> str:
+        """Return the allowed values as text for error messages."""
+        if self.choices is not None:
+            return 'one of ' + ', '.join(repr(c) for c in self.choices)
+        if self.low is not None and self.high is not None:
+            return f'[{self.low}, {self.high}]'
+        if self.low is not None:
+            return f'>= {self.low}'
+        if self.high is not None:
+            return f'<= {self.high}'
+        return f'any {self.type.__name__}'
+
+
+def _p(default: Any, description: str, *, low: float | None = None,
+       high: float | None = None, choices: tuple[str, ...] | None = None,
+       read_only: bool = False, shape: bool = False) -> Any:
+    meta = {'description': description, 'low': low, 'high': high, 'choices': choices,
+            'read_only': read_only or shape, 'shape': shape}
+    return field(default=default, metadata=meta)
+
+
+class _Schema:
+    """Shared behaviour of the configuration dataclasses."""
+
+    _cross_checks: ClassVar[tuple[str, ...]] = ()
+
+    @classmethod
+    def specs(cls) -> tuple[ParamSpec, ...]:
+        """Return one :class:`ParamSpec` per setting, in declaration order."""
+        out = []
+        for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+            m = f.metadata
+            typ = {'float': float, 'int': int, 'str': str, 'bool': bool}[str(f.type)]
+            out.append(ParamSpec(f.name, typ, f.default, m['description'], m['low'], m['high'],
+                                 m['choices'], m['read_only'], m['shape']))
+        return tuple(out)
+
+    def __post_init__(self) -> None:
+        for spec in self.specs():
+            value = _coerce(spec, getattr(self, spec.name))
+            object.__setattr__(self, spec.name, value)
+        self._validate_cross()
+
+    def _validate_cross(self) -> None:
+        """Check rules that involve several keys."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the settings as a plain dict (YAML/JSON ready)."""
+        out: dict[str, Any] = dataclasses.asdict(self)  # type: ignore[call-overload]
+        return out
+
+    def replace(self: _C, **changes: Any) -> _C:
+        """Return a validated copy with some settings changed."""
+        unknown = sorted(set(changes) - {s.name for s in self.specs()})
+        if unknown:
+            raise ConfigError(f'unknown parameter {unknown[0]!r}')
+        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+
+    @classmethod
+    def from_dict(cls: type[_C], values: Mapping[str, Any], *, strict: bool = True) -> _C:
+        """Build from a mapping; with ``strict`` unknown keys raise :class:`ConfigError`."""
+        names = {s.name for s in cls.specs()}
+        if strict:
+            known = names | _all_names() | _ROS_STANDARD_KEYS
+            for key in values:
+                if key not in known:
+                    raise ConfigError(f'unknown parameter {key!r}')
+        return cls(**{k: v for k, v in values.items() if k in names})
+
+    @classmethod
+    def from_yaml(cls: type[_C], path: str | Path, node_name: str = 'solid_node') -> _C:
+        """Load the ``ros__parameters`` block of ``node_name`` from a ROS 2 parameter file.
+
+        Args:
+            path: YAML parameter file, as given to ``--ros-args --params-file``.
+            node_name: node whose block is read; ``/**`` wildcard blocks also apply.
+
+        Raises:
+            ConfigError: the file is unreadable, malformed, or holds an invalid value.
+        """
+        return cls.from_dict(load_yaml_parameters(path, node_name))
+
+
+def _coerce(spec: ParamSpec, value: Any) -> Any:
+    """Check one value against its spec and return it with the exact declared type."""
+    name = spec.name
+    if spec.type is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f'{name}: expected true or false, got {value!r}')
+        return value
+    if spec.type is str:
+        if not isinstance(value, str):
+            raise ConfigError(f'{name}: expected a string, got {value!r}')
+        if spec.choices is not None and value not in spec.choices:
+            raise ConfigError(f'{name}: {value!r} is not allowed; use {spec.range_text()}')
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f'{name}: expected a number in {spec.range_text()}, got {value!r}')
+    if spec.type is int:
+        if isinstance(value, float) and not value.is_integer():
+            raise ConfigError(f'{name}: expected an integer in {spec.range_text()}, '
+                              f'got {value!r}')
+        value = int(value)
+    else:
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f'{name}: {value!r} is not finite; allowed {spec.range_text()}')
+    if (spec.low is not None and value < spec.low) or (
+            spec.high is not None and value > spec.high):
+        raise ConfigError(f'{name}: {value!r} is out of range; allowed {spec.range_text()}')
+    return value
+
+
+@dataclass(frozen=True)
+class SolidConfig(_Schema):
+    """Descriptor and loop-detector settings.
+
+    ``SolidConfig()`` equals the SOLiD authors' C++ defaults (360 deg, +2/-24.8 deg,
+    3-80 m, voxel 0.4 m, 40/60/32 bins, L_max 80 m) and reproduces their descriptors.
+
+    Raises:
+        ConfigError: a value is of the wrong type or out of range; the message names the key.
+    """
+
+    # Field of view and preprocessing (change descriptor values: read-only at runtime).
+    fov_width_deg: float = _p(360.0, 'Horizontal field of view kept, degrees', low=1.0,
+                              high=360.0, shape=True)
+    fov_center_deg: float = _p(0.0, 'Centre heading of the horizontal FOV, degrees CCW from +x',
+                               low=-180.0, high=180.0, shape=True)
+    fov_up_deg: float = _p(2.0, 'Sensor vertical FOV upper limit, degrees', low=-90.0,
+                           high=90.0, shape=True)
+    fov_down_deg: float = _p(-24.8, 'Sensor vertical FOV lower limit, degrees', low=-90.0,
+                             high=90.0, shape=True)
+    min_range: float = _p(3.0, 'Points closer than this (3-D, metres) are dropped', low=0.0,
+                          high=1000.0, shape=True)
+    max_range: float = _p(80.0, 'Points at or beyond this (3-D, metres) are dropped', low=0.1,
+                          high=1000.0, shape=True)
+    voxel_size: float = _p(0.4, 'Voxel grid leaf in metres (0 turns it off)', low=0.0,
+                           high=100.0, shape=True)
+    num_range: int = _p(40, 'N_r: range bins over [0, max_distance)', low=1, high=1024,
+                        shape=True)
+    num_angle: int = _p(60, 'N_a: azimuth bins over [0, 360) degrees', low=4, high=3600,
+                        shape=True)
+    num_height: int = _p(32, 'N_e: elevation bins over [fov_down_deg, fov_up_deg]', low=1,
+                         high=1024, shape=True)
+    max_distance: float = _p(80.0, 'L_max: horizontal extent of the range bins, metres',
+                             low=0.1, high=1000.0, shape=True)
+    heading_weight: str = _p('count', "Heading signature: 'count' is the paper's A-SOLiD; "
+                             "'range' weights points by squared range (less parallax)",
+                             choices=('count', 'range'), shape=True)
+
+    # Database (fixed once running).
+    capacity: int = _p(100000, 'Stored scans; the oldest is evicted beyond this', low=1,
+                       high=10_000_000, read_only=True)
+    search: str = _p('brute', 'Search mode: exact vectorised brute force (faster for 40-bin '
+                     'descriptors) or kd-tree',
+                     choices=('kdtree', 'brute'), read_only=True)
+    kdtree_rebuild_every: int = _p(64, 'Rebuild the kd-tree after at least this many '
+                                   'insertions (and 1/16 of its size)',
+                                   low=1, high=1_000_000, read_only=True)
+    num_candidates: int = _p(10, 'Top-k candidates re-ranked by exact cosine distance',
+                             low=1, high=1000)
+    session_id: int = _p(0, 'Session id stored with every scan of this run', low=0,
+                         high=2**31 - 1, read_only=True)
+
+    # Query and acceptance (tunable at runtime).
+    distance_threshold: float = _p(0.03, 'Accept a loop when cosine distance is below this',
+                                   low=0.0, high=2.0)
+    exclude_recent_frames: int = _p(50, 'Never match the most recent N stored scans', low=0,
+                                    high=10_000_000)
+    exclude_recent_sec: float = _p(0.0, 'Never match scans newer than this many seconds',
+                                   low=0.0, high=1e9)
+    min_margin: float = _p(0.0, 'Required distance gap to the next-best distinct place '
+                           '(0 = off)', low=0.0, high=2.0)
+    margin_neighbourhood: int = _p(10, 'Scans within this index distance of the best match '
+                                   'count as the same place for the margin test', low=0,
+                                   high=1_000_000)
+    max_candidates: int = _p(1, 'Most loop candidates reported per query', low=1, high=100)
+    min_loop_gap: int = _p(0, 'Queries between two accepted loops (0 = off)', low=0,
+                           high=1_000_000)
+
+    # Keyframe gating (0 turns a criterion off; all off keeps every scan).
+    keyframe_min_sec: float = _p(0.0, 'Keyframe when this many seconds passed', low=0.0,
+                                 high=1e6)
+    keyframe_min_distance: float = _p(0.0, 'Keyframe when the sensor moved this far, metres '
+                                      '(needs poses)', low=0.0, high=1e6)
+    keyframe_min_rotation_deg: float = _p(0.0, 'Keyframe when the sensor turned this much, '
+                                          'degrees (needs poses)', low=0.0, high=360.0)
+
+    def _validate_cross(self) -> None:
+        if self.fov_up_deg <= self.fov_down_deg:
+            raise ConfigError(f'fov_up_deg: {self.fov_up_deg} must be greater than '
+                              f'fov_down_deg ({self.fov_down_deg})')
+        if self.max_range <= self.min_range:
+            raise ConfigError(f'max_range: {self.max_range} must be greater than '
+                              f'min_range ({self.min_range})')
+
+    def shape_params(self) -> dict[str, Any]:
+        """Return the settings that change descriptor values (saved with databases)."""
+        return {s.name: getattr(self, s.name) for s in self.specs() if s.shape}
+
+    def fingerprint(self) -> str:
+        """Return a short hash of :meth:`shape_params`."""
+        blob = json.dumps(self.shape_params(), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class NodeConfig(_Schema):
+    """Settings of the ROS node only (topics, QoS, files); see :class:`SolidConfig`."""
+
+    qos_reliability: str = _p('best_effort', 'QoS reliability of the points subscription',
+                              choices=('best_effort', 'reliable'), read_only=True)
+    qos_depth: int = _p(5, 'QoS history depth of the points subscription', low=1, high=1000,
+                        read_only=True)
+    use_odom: bool = _p(True, 'Subscribe to odom for keyframe gating and markers',
+                        read_only=True)
+    odom_tolerance_sec: float = _p(0.05, 'Max stamp difference when pairing cloud and odom',
+                                   low=0.0, high=10.0)
+    queue_size: int = _p(2, 'Clouds waiting for processing; the oldest is dropped beyond '
+                         'this', low=1, high=1000, read_only=True)
+    database_save_path: str = _p('', 'File written by ~/save_database (empty = disabled)')
+    database_load_path: str = _p('', 'Saved database loaded at start (empty = none)',
+                                 read_only=True)
+    diagnostics_period_sec: float = _p(1.0, 'Period of /diagnostics messages', low=0.05,
+                                       high=3600.0, read_only=True)
+
+
+def param_specs() -> tuple[ParamSpec, ...]:
+    """Return the specs of every setting of the node: core first, then node-only."""
+    return SolidConfig.specs() + NodeConfig.specs()
+
+
+def _all_names() -> set[str]:
+    return {s.name for s in SolidConfig.specs()} | {s.name for s in NodeConfig.specs()}
+
+
+def load_yaml_parameters(path: str | Path, node_name: str = 'solid_node') -> dict[str, Any]:
+    """Read the merged ``ros__parameters`` of ``node_name`` (and ``/**``) from a YAML file.
+
+    Raises:
+        ConfigError: the file is missing, not YAML, or not in ROS 2 parameter layout.
+    """
+    import yaml
+
+    try:
+        text = Path(path).read_text(encoding='utf-8')
+    except OSError as err:
+        raise ConfigError(f'cannot read parameter file {path}: {err.strerror}') from err
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ConfigError(f'{path} is not valid YAML: {err}') from err
+    if not isinstance(doc, dict):
+        raise ConfigError(f'{path}: expected "<node>: ros__parameters:" at the top level')
+    params: dict[str, Any] = {}
+    wanted = {'/**', node_name, '/' + node_name.lstrip('/')}
+    found = False
+    for key, block in doc.items():
+        if str(key) not in wanted:
+            continue
+        if not isinstance(block, dict) or not isinstance(block.get('ros__parameters'), dict):
+            raise ConfigError(f'{path}: block {key!r} has no ros__parameters mapping')
+        params.update(_flatten(block['ros__parameters']))
+        found = True
+    if not found:
+        raise ConfigError(f'{path}: no ros__parameters block for node {node_name!r} '
+                          f'(blocks: {", ".join(map(str, doc)) or "none"})')
+    return params
+
+
+def _flatten(block: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in block.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + '.'))
+        else:
+            out[name] = value
+    return out

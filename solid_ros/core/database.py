@@ -1,0 +1,446 @@
+"""Rolling store of SOLiD descriptors with exact nearest-neighbour search by cosine distance.
+
+Storage is a ring buffer of preallocated arrays (zero-filled, so the operating system maps the
+pages only when they are written): unit-normalised R-SOLiD and A-SOLiD as float32, stamps,
+per-session indices, session ids and an optional pose per scan. Every stored scan also has a
+sequence number ``seq`` (0, 1, 2, ... in insertion order, loaded scans first); its slot in the
+arrays is ``seq % capacity`` and the live scans are the last ``size`` sequence numbers.
+
+Search returns the ``k`` nearest valid scans, re-ranked by exact cosine distance (float64 over
+the stored vectors). Brute force is one float32 matrix-vector product. The kd-tree mode indexes
+the L2-normalised R-SOLiD (on unit vectors ``|a - b|^2 = 2 * cosine_distance``, so the order is
+the same) and searches the scans added since its last rebuild exactly, so nothing is missed.
+
+A scan whose R-SOLiD is all zero (empty cloud) is stored, so indices stay contiguous, but it
+neither matches nor is matched.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.errors import DatabaseError
+
+__all__ = ['DescriptorDatabase', 'Match', 'POSE_FIELDS']
+
+# Stored pose layout: position then unit quaternion (NaN when the scan had no pose).
+POSE_FIELDS = ('x', 'y', 'z', 'qx', 'qy', 'qz', 'qw')
+# The kd-tree is rebuilt when the unindexed tail reaches max(kdtree_rebuild_every,
+# indexed / _TAIL_DIVISOR): a rebuild costs O(n log n), so a tail growing with n keeps the
+# amortised insert cost O(log n) while the exact tail search stays a small fraction of n.
+_TAIL_DIVISOR = 16
+_HAS_R = np.uint8(1)
+_HAS_POSE = np.uint8(2)
+
+Int64Array = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class Match:
+    """One stored scan returned by :meth:`DescriptorDatabase.search`.
+
+    Attributes:
+        seq: insertion sequence number (valid while the scan is stored).
+        index: index of the scan within its own session.
+        session: session id of the scan.
+        stamp_ns: stamp of the scan, integer nanoseconds.
+        distance: exact cosine distance to the query, in [0, 2].
+    """
+
+    seq: int
+    index: int
+    session: int
+    stamp_ns: int
+    distance: float
+
+
+def unit_vector(v: npt.ArrayLike) -> tuple[npt.NDArray[np.float64], bool]:
+    """Return ``v / |v|`` as float64 and whether ``v`` was non-zero and finite."""
+    arr = np.asarray(v, dtype=np.float64).ravel()
+    norm = float(np.linalg.norm(arr))
+    if not math.isfinite(norm) or norm == 0.0:
+        return np.zeros_like(arr), False
+    return arr / norm, True
+
+
+class DescriptorDatabase:
+    """Fixed-capacity ring of descriptors; the oldest scan is evicted when it is full.
+
+    Args:
+        config: settings; reads ``capacity``, ``search``, ``kdtree_rebuild_every``,
+            ``session_id``, ``num_range`` and ``num_angle``.
+    """
+
+    def __init__(self, config: SolidConfig) -> None:
+        self.config = config
+        cap = config.capacity
+        self.capacity = cap
+        self.session_id = config.session_id
+        self.num_range = config.num_range
+        self.num_angle = config.num_angle
+        self._r = np.zeros((cap, self.num_range), dtype=np.float32)
+        self._a = np.zeros((cap, self.num_angle), dtype=np.float32)
+        self._stamp = np.zeros(cap, dtype=np.int64)
+        self._index = np.zeros(cap, dtype=np.int64)
+        self._session = np.zeros(cap, dtype=np.int32)
+        self._pose = np.zeros((cap, len(POSE_FIELDS)), dtype=np.float32)
+        self._flags = np.zeros(cap, dtype=np.uint8)
+        # Stored vector for an all-zero R-SOLiD: the farthest possible from every
+        # non-negative unit query, so it never crowds the top k.
+        self._sentinel = np.full(self.num_range, -1.0 / math.sqrt(self.num_range), np.float32)
+        self._next = 0  # next sequence number
+        self._size = 0
+        self._session_start = 0  # first seq of the current session
+        self._session_count = 0  # scans added in the current session (the next index)
+        self._last_stamp: int | None = None
+        self._monotone = True  # current-session stamps never decreased
+        self._tree: cKDTree | None = None
+        self._tree_seqs: Int64Array = np.zeros(0, dtype=np.int64)
+        self._tree_hi = 0  # the tree holds scans with seq < _tree_hi
+
+    # ----------------------------------------------------------------------------- state
+    @property
+    def size(self) -> int:
+        """Number of stored scans (all sessions)."""
+        return self._size
+
+    @property
+    def session_count(self) -> int:
+        """Scans added in the current session; also the index the next one gets."""
+        return self._session_count
+
+    @property
+    def oldest_seq(self) -> int:
+        """Sequence number of the oldest stored scan."""
+        return self._next - self._size
+
+    @property
+    def next_seq(self) -> int:
+        """Sequence number the next added scan gets."""
+        return self._next
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the preallocated storage (the kd-tree's copy excluded)."""
+        arrays = (self._r, self._a, self._stamp, self._index, self._session, self._pose,
+                  self._flags)
+        return sum(a.nbytes for a in arrays)
+
+    @property
+    def bytes_per_scan(self) -> float:
+        """Storage bytes per stored scan: ``nbytes / capacity``."""
+        return self.nbytes / self.capacity
+
+    def slot(self, seq: int) -> int:
+        """Array slot of a stored scan."""
+        return seq % self.capacity
+
+    def is_stored(self, seq: int) -> bool:
+        """Whether scan ``seq`` is still stored (not evicted)."""
+        return self.oldest_seq <= seq < self._next
+
+    def a_solid(self, seq: int) -> npt.NDArray[np.float32]:
+        """Heading signature (A-SOLiD unless heading_weight is range), unit-normalised."""
+        row: npt.NDArray[np.float32] = self._a[self.slot(seq)]
+        return row
+
+    def r_solid(self, seq: int) -> npt.NDArray[np.float32]:
+        """R-SOLiD (unit-normalised; zeros for an empty scan) of a stored scan."""
+        s = self.slot(seq)
+        if not self._flags[s] & _HAS_R:
+            return np.zeros(self.num_range, dtype=np.float32)
+        row: npt.NDArray[np.float32] = self._r[s]
+        return row
+
+    def pose(self, seq: int) -> npt.NDArray[np.float32] | None:
+        """Stored pose ``(x, y, z, qx, qy, qz, qw)`` of a scan, or None."""
+        s = self.slot(seq)
+        return self._pose[s] if self._flags[s] & _HAS_POSE else None
+
+    def match_info(self, seq: int) -> tuple[int, int, int]:
+        """Return ``(index, session, stamp_ns)`` of a stored scan."""
+        s = self.slot(seq)
+        return int(self._index[s]), int(self._session[s]), int(self._stamp[s])
+
+    # ---------------------------------------------------------------------------- insert
+    def add(self, r_solid: npt.ArrayLike, a_solid: npt.ArrayLike, stamp_ns: int,
+            pose: Sequence[float] | npt.ArrayLike | None = None) -> int:
+        """Store one scan of the current session, evicting the oldest when full.
+
+        Args:
+            r_solid: R-SOLiD, shape (N_r,) (need not be normalised).
+            a_solid: A-SOLiD, shape (N_a,).
+            stamp_ns: stamp in integer nanoseconds.
+            pose: optional ``(x, y, z, qx, qy, qz, qw)``.
+
+        Returns:
+            The index of the scan within the current session.
+        """
+        index = self._session_count
+        self._put(r_solid, a_solid, int(stamp_ns), index, self.session_id, pose)
+        self._session_count += 1
+        if self._last_stamp is not None and stamp_ns < self._last_stamp:
+            self._monotone = False
+        self._last_stamp = int(stamp_ns)
+        self._maybe_rebuild()
+        return index
+
+    def _put(self, r_solid: npt.ArrayLike, a_solid: npt.ArrayLike, stamp_ns: int, index: int,
+             session: int, pose: Sequence[float] | npt.ArrayLike | None) -> None:
+        r = np.asarray(r_solid, dtype=np.float64).ravel()
+        a = np.asarray(a_solid, dtype=np.float64).ravel()
+        if r.shape != (self.num_range,) or a.shape != (self.num_angle,):
+            raise DatabaseError(f'descriptor shape ({r.shape[0]}, {a.shape[0]}) does not match '
+                                f'the database ({self.num_range}, {self.num_angle})')
+        s = self._next % self.capacity
+        r_unit, has_r = unit_vector(r)
+        a_unit, _ = unit_vector(a)
+        flags = _HAS_R if has_r else np.uint8(0)
+        self._r[s] = r_unit if has_r else self._sentinel
+        self._a[s] = a_unit
+        self._stamp[s] = stamp_ns
+        self._index[s] = index
+        self._session[s] = session
+        if pose is not None:
+            p = np.asarray(pose, dtype=np.float32).ravel()
+            if p.shape != (len(POSE_FIELDS),):
+                raise DatabaseError(f'pose must have {len(POSE_FIELDS)} values '
+                                    f'{POSE_FIELDS}, got shape {p.shape}')
+            self._pose[s] = p
+            flags |= _HAS_POSE
+        else:
+            self._pose[s] = np.nan
+        self._flags[s] = flags
+        self._next += 1
+        self._size = min(self._size + 1, self.capacity)
+
+    def _maybe_rebuild(self, force: bool = False) -> None:
+        if self.config.search != 'kdtree':
+            return
+        tail = self._next - self._tree_hi
+        if not force and tail < max(self.config.kdtree_rebuild_every,
+                                    len(self._tree_seqs) // _TAIL_DIVISOR):
+            return
+        seqs = np.arange(self.oldest_seq, self._next, dtype=np.int64)
+        slots = seqs % self.capacity
+        keep = (self._flags[slots] & _HAS_R) != 0
+        seqs, slots = seqs[keep], slots[keep]
+        self._tree_seqs = seqs
+        self._tree_hi = self._next
+        self._tree = (cKDTree(self._r[slots].astype(np.float64), balanced_tree=False,
+                              compact_nodes=False) if len(seqs) else None)
+
+    # ---------------------------------------------------------------------------- search
+    def search(self, r_solid: npt.ArrayLike, stamp_ns: int, k: int, *,
+               exclude_frames: int = 0, exclude_sec: float = 0.0) -> list[Match]:
+        """Return the ``k`` nearest stored scans by exact cosine distance, nearest first.
+
+        Args:
+            r_solid: R-SOLiD of the query, shape (N_r,).
+            stamp_ns: stamp of the query, integer nanoseconds.
+            k: number of scans to return (fewer when fewer are eligible).
+            exclude_frames: skip the most recent N scans of the current session.
+            exclude_sec: skip current-session scans with stamp > query stamp - this
+                (0 = off). Both rules apply: whichever excludes more wins. Scans of loaded
+                sessions are never excluded.
+
+        Returns:
+            Matches sorted by distance; empty when the query R-SOLiD is all zero.
+        """
+        q, ok = unit_vector(r_solid)
+        if q.shape != (self.num_range,):
+            raise DatabaseError(f'query R-SOLiD has {q.shape[0]} bins, the database '
+                                f'{self.num_range}')
+        if not ok or self._size == 0 or k <= 0:
+            return []
+        cut, time_limit = self._exclusion(int(stamp_ns), exclude_frames, exclude_sec)
+        if self.config.search == 'kdtree' and self._tree is not None:
+            seqs = self._search_tree(q, k, cut, time_limit)
+        else:
+            seqs = self._search_brute(q, k, cut, time_limit)
+        return self._rerank(q, seqs, k)
+
+    def _exclusion(self, stamp_ns: int, frames: int, sec: float) -> tuple[int, int | None]:
+        """Return ``cut`` (current-session scans with seq >= cut are excluded) and, when the
+        stamps are not monotone, the stamp above which scans are also excluded."""
+        start = max(self._session_start, self.oldest_seq)
+        cut = max(start, self._next - frames)
+        if sec <= 0.0 or start >= self._next:
+            return cut, None
+        limit = stamp_ns - int(round(sec * 1e9))
+        if not self._monotone:
+            return cut, limit
+        lo, hi = start, self._next  # first seq in [start, next) with stamp > limit
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if self._stamp[mid % self.capacity] > limit:
+                hi = mid
+            else:
+                lo = mid + 1
+        return min(cut, lo), None
+
+    def _slot_ranges(self, seq_lo: int, seq_hi: int) -> list[tuple[int, int]]:
+        """Slot ranges of the stored sequence numbers ``[seq_lo, seq_hi)``."""
+        if seq_hi <= seq_lo:
+            return []
+        a, n = seq_lo % self.capacity, seq_hi - seq_lo
+        if a + n <= self.capacity:
+            return [(a, a + n)]
+        return [(a, self.capacity), (0, a + n - self.capacity)]
+
+    def _time_excluded(self, seqs: Int64Array, limit: int | None) -> npt.NDArray[np.bool_]:
+        if limit is None:
+            return np.zeros(len(seqs), dtype=bool)
+        current = seqs >= self._session_start
+        return current & (self._stamp[seqs % self.capacity] > limit)
+
+    def _search_brute(self, q: npt.NDArray[np.float64], k: int, cut: int,
+                      limit: int | None) -> Int64Array:
+        return self._exact(q, k, self.oldest_seq, self._next, cut, limit)
+
+    def _exact(self, q: npt.NDArray[np.float64], k: int, seq_lo: int, seq_hi: int, cut: int,
+               limit: int | None) -> Int64Array:
+        """Top ``k`` valid seqs in ``[seq_lo, seq_hi)`` by float32 dot product."""
+        if seq_hi <= seq_lo:
+            return np.zeros(0, dtype=np.int64)
+        q32 = q.astype(np.float32)
+        everything = seq_hi - seq_lo == self._size
+        if everything:  # positions in `dots` are slots: no gather copy
+            dots = self._r[:self._size] @ q32
+            for a, b in self._slot_ranges(max(cut, seq_lo), seq_hi):
+                dots[a:b] = -np.inf
+        else:  # positions are seq - seq_lo
+            slots = np.concatenate([np.arange(a, b)
+                                    for a, b in self._slot_ranges(seq_lo, seq_hi)])
+            dots = self._r[slots] @ q32
+            dots[max(cut - seq_lo, 0):] = -np.inf
+        if limit is not None:
+            seqs = (self._seqs_of_slots(np.arange(self._size)) if everything
+                    else np.arange(seq_lo, seq_hi, dtype=np.int64))
+            dots[self._time_excluded(seqs, limit)] = -np.inf
+        n = len(dots)
+        kk = min(k, n)
+        top = np.argpartition(dots, n - kk)[n - kk:]
+        top = top[dots[top] > -np.inf]
+        if everything:
+            return self._seqs_of_slots(top)
+        return top.astype(np.int64) + seq_lo
+
+    def _seqs_of_slots(self, slots: npt.NDArray[np.integer]) -> Int64Array:
+        last = self._next - 1
+        return last - ((last - slots.astype(np.int64)) % self.capacity)
+
+    def _search_tree(self, q: npt.NDArray[np.float64], k: int, cut: int,
+                     limit: int | None) -> Int64Array:
+        assert self._tree is not None
+        tree_seqs = self._tree_seqs
+        n_tree = len(tree_seqs)
+        oldest = self.oldest_seq
+        # Tree entries known to be invalid now (evicted or excluded) are asked for on top.
+        stale = int(np.searchsorted(tree_seqs, oldest))
+        excluded = n_tree - int(np.searchsorted(tree_seqs, cut))
+        kq = min(n_tree, k + stale + excluded)
+        while True:
+            _, idx = self._tree.query(q, k=kq)
+            idx = np.atleast_1d(idx)
+            idx = idx[idx < n_tree]
+            seqs = tree_seqs[idx]
+            valid = (seqs >= oldest) & (seqs < cut) & ~self._time_excluded(seqs, limit)
+            if int(valid.sum()) >= k or kq >= n_tree:
+                break
+            kq = min(n_tree, 2 * kq)
+        found = seqs[valid][:k]
+        tail = self._exact(q, k, max(self._tree_hi, oldest), self._next, cut, limit)
+        return np.concatenate([found, tail])
+
+    def _rerank(self, q: npt.NDArray[np.float64], seqs: Int64Array, k: int) -> list[Match]:
+        if len(seqs) == 0:
+            return []
+        slots = seqs % self.capacity
+        has_r = (self._flags[slots] & _HAS_R) != 0
+        seqs, slots = seqs[has_r], slots[has_r]
+        # Row-wise sum, not BLAS: the result must not depend on which rows are gathered.
+        dist = np.clip(1.0 - (self._r[slots].astype(np.float64) * q).sum(axis=1), 0.0, 2.0)
+        order = np.lexsort((seqs, dist))[:k]
+        return [Match(int(seqs[i]), int(self._index[slots[i]]), int(self._session[slots[i]]),
+                      int(self._stamp[slots[i]]), float(dist[i])) for i in order]
+
+    # ------------------------------------------------------------------------ persistence
+    def export_arrays(self) -> dict[str, npt.NDArray[np.generic]]:
+        """Return the stored scans, oldest first, as plain arrays (for saving).
+
+        Keys: ``r_solid`` (n, N_r) float32 unit (zeros for empty scans), ``a_solid`` (n, N_a)
+        float32, ``stamps_ns`` int64, ``indices`` int64, ``sessions`` int32, ``poses`` (n, 7)
+        float32 (NaN rows without pose).
+        """
+        slots = np.arange(self.oldest_seq, self._next, dtype=np.int64) % self.capacity
+        r = self._r[slots].copy()
+        r[(self._flags[slots] & _HAS_R) == 0] = 0.0
+        poses = self._pose[slots].copy()
+        poses[(self._flags[slots] & _HAS_POSE) == 0] = np.nan
+        return {'r_solid': r, 'a_solid': self._a[slots].copy(),
+                'stamps_ns': self._stamp[slots].copy(), 'indices': self._index[slots].copy(),
+                'sessions': self._session[slots].copy(), 'poses': poses}
+
+    def import_arrays(self, arrays: dict[str, npt.NDArray[np.generic]]) -> None:
+        """Store scans of earlier sessions (as given by :meth:`export_arrays`).
+
+        Only allowed before the current session has added a scan. When there are more scans
+        than ``capacity`` the newest ``capacity`` are kept.
+
+        Raises:
+            DatabaseError: the current session already started, or a stored session id
+                equals this session's ``session_id``.
+        """
+        if self._session_count:
+            raise DatabaseError('scans can only be loaded before the session adds any')
+        sessions = np.asarray(arrays['sessions'])
+        if np.any(sessions == self.session_id):
+            free = int(sessions.max()) + 1
+            raise DatabaseError(f'the saved database already holds session_id '
+                                f'{self.session_id}; give this run another session_id '
+                                f'(e.g. {free}) so its scans stay distinguishable')
+        n = len(sessions)
+        first = max(0, n - self.capacity)
+        count = n - first
+        slots = np.arange(self._next, self._next + count) % self.capacity
+        r_unit, has_r = _unit_rows(np.asarray(arrays['r_solid'])[first:])
+        r_unit[~has_r] = self._sentinel
+        a_unit, _ = _unit_rows(np.asarray(arrays['a_solid'])[first:])
+        poses = np.asarray(arrays['poses'], dtype=np.float32)[first:]
+        has_pose = np.all(np.isfinite(poses), axis=1)
+        self._r[slots] = r_unit
+        self._a[slots] = a_unit
+        self._stamp[slots] = np.asarray(arrays['stamps_ns'])[first:]
+        self._index[slots] = np.asarray(arrays['indices'])[first:]
+        self._session[slots] = sessions[first:]
+        self._pose[slots] = poses
+        self._flags[slots] = np.where(has_r, _HAS_R, 0) | np.where(has_pose, _HAS_POSE, 0)
+        self._next += count
+        self._size = min(self._size + count, self.capacity)
+        self._session_start = self._next
+        self._maybe_rebuild(force=True)
+
+
+def _unit_rows(rows: npt.NDArray[np.generic]) -> tuple[npt.NDArray[np.float32],
+                                                        npt.NDArray[np.bool_]]:
+    """Rows scaled to unit length as float32, and which rows were non-zero and finite.
+
+    Rows already unit to float32 precision (as saved) are kept bit for bit, so a loaded
+    database answers exactly like the one that was saved.
+    """
+    r64 = rows.astype(np.float64)
+    norms = np.linalg.norm(r64, axis=1)
+    ok = np.isfinite(norms) & (norms > 0.0)
+    rescale = ok & (np.abs(norms - 1.0) > 1e-5)
+    out = rows.astype(np.float32)
+    out[rescale] = (r64[rescale] / norms[rescale, None]).astype(np.float32)
+    out[~ok] = 0.0
+    return out, ok

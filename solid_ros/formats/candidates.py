@@ -1,0 +1,115 @@
+"""Loop candidates as rows of a std_msgs/Float64MultiArray, without ROS imports.
+
+The node publishes the accepted candidates of one query as one message: ``layout.dim[0]`` is
+``candidates`` (one row per candidate), ``layout.dim[1]`` is the columns, whose ``label`` is the
+comma-separated column names of :data:`COLUMNS`. Row ``i`` column ``j`` is
+``data[data_offset + i * dim[1].stride + j]``. Stamps are split into ``sec`` / ``nanosec``
+(both exact in float64) so a back end can match them to its own keyframe header stamps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.errors import SolidError
+
+__all__ = ['COLUMNS', 'INT_COLUMNS', 'ROWS_LABEL', 'COLUMNS_LABEL', 'CandidateDecodeError',
+           'decode_candidates', 'layout_dims', 'split_stamp', 'to_rows']
+
+COLUMNS: tuple[str, ...] = (
+    'query_index', 'match_index', 'query_stamp_sec', 'query_stamp_nanosec',
+    'match_stamp_sec', 'match_stamp_nanosec', 'distance', 'yaw', 'margin', 'match_session',
+)
+# Columns holding integers (decoded as int).
+INT_COLUMNS = frozenset({'query_index', 'match_index', 'query_stamp_sec', 'query_stamp_nanosec',
+                         'match_stamp_sec', 'match_stamp_nanosec', 'match_session'})
+ROWS_LABEL = 'candidates'
+COLUMNS_LABEL = ','.join(COLUMNS)
+_NS = 1_000_000_000
+
+
+class CandidateDecodeError(SolidError):
+    """A Float64MultiArray does not hold loop candidates in the documented layout."""
+
+
+def split_stamp(stamp_ns: int) -> tuple[int, int]:
+    """Return ``(sec, nanosec)`` of a stamp in integer nanoseconds (nanosec in [0, 1e9))."""
+    sec, nanosec = divmod(int(stamp_ns), _NS)
+    return sec, nanosec
+
+
+def to_rows(candidates: Iterable[Any]) -> npt.NDArray[np.float64]:
+    """Return an ``(n, len(COLUMNS))`` float64 array, one row per candidate.
+
+    Args:
+        candidates: objects with the LoopCandidate attributes ``query_index``,
+            ``match_index``, ``query_stamp_ns``, ``match_stamp_ns``, ``distance``, ``yaw``,
+            ``margin`` and ``match_session``.
+    """
+    rows = []
+    for c in candidates:
+        q_sec, q_ns = split_stamp(c.query_stamp_ns)
+        m_sec, m_ns = split_stamp(c.match_stamp_ns)
+        rows.append((c.query_index, c.match_index, q_sec, q_ns, m_sec, m_ns, c.distance,
+                     c.yaw, c.margin, c.match_session))
+    if not rows:
+        return np.empty((0, len(COLUMNS)), dtype=np.float64)
+    return np.asarray(rows, dtype=np.float64)
+
+
+def layout_dims(num_rows: int) -> list[tuple[str, int, int]]:
+    """Return ``(label, size, stride)`` of the two MultiArrayDimensions for ``num_rows`` rows."""
+    ncol = len(COLUMNS)
+    return [(ROWS_LABEL, num_rows, num_rows * ncol), (COLUMNS_LABEL, ncol, ncol)]
+
+
+def decode_candidates(msg: Any) -> list[dict[str, float | int]]:
+    """Decode a loop-candidate Float64MultiArray (rclpy or rosbags message) into dicts.
+
+    Columns are found by name from ``layout.dim[1].label``, so a newer publisher that appends
+    columns still decodes. Each dict holds every column (integers as ``int``) plus
+    ``query_stamp_ns`` and ``match_stamp_ns`` in integer nanoseconds.
+
+    Raises:
+        CandidateDecodeError: the layout is not two-dimensional, lacks a column, or the data
+            is shorter than the layout says.
+    """
+    try:
+        dims = list(msg.layout.dim)
+        offset = int(msg.layout.data_offset)
+        data = np.asarray(msg.data, dtype=np.float64).reshape(-1)
+    except (AttributeError, TypeError, ValueError) as err:
+        raise CandidateDecodeError(f'not a Float64MultiArray: {err}') from err
+    if len(dims) != 2:
+        raise CandidateDecodeError(f'expected 2 layout dimensions, got {len(dims)}')
+    names = [n.strip() for n in str(dims[1].label).split(',')]
+    missing = [c for c in COLUMNS if c not in names]
+    if missing:
+        raise CandidateDecodeError(f'column {missing[0]!r} missing from layout label '
+                                   f'{dims[1].label!r}')
+    nrow, ncol, stride = int(dims[0].size), int(dims[1].size), int(dims[1].stride)
+    if ncol != len(names) or stride < ncol:
+        raise CandidateDecodeError(f'{len(names)} labels but size {ncol}, stride {stride}')
+    if nrow == 0:
+        return []
+    if data.size < offset + (nrow - 1) * stride + ncol:
+        raise CandidateDecodeError(f'data has {data.size} values, layout needs '
+                                   f'{offset + (nrow - 1) * stride + ncol}')
+    col = {n: i for i, n in enumerate(names)}
+    out: list[dict[str, float | int]] = []
+    for r in range(nrow):
+        row = data[offset + r * stride: offset + r * stride + ncol]
+        item: dict[str, float | int] = {}
+        for name in COLUMNS:
+            value = float(row[col[name]])
+            item[name] = int(value) if name in INT_COLUMNS else value
+        item['query_stamp_ns'] = int(item['query_stamp_sec']) * _NS + int(
+            item['query_stamp_nanosec'])
+        item['match_stamp_ns'] = int(item['match_stamp_sec']) * _NS + int(
+            item['match_stamp_nanosec'])
+        out.append(item)
+    return out

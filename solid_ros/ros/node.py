@@ -1,0 +1,426 @@
+"""``solid_node``: PointCloud2 in, SOLiD loop candidates with yaw out.
+
+Topics (relative names, remappable): subscribes ``points`` (sensor_msgs/PointCloud2) and,
+with ``use_odom``, ``odom`` (nav_msgs/Odometry); publishes ``~/loop_candidates``
+(std_msgs/Float64MultiArray, see :mod:`solid_ros.formats.candidates`), ``~/loop_markers``
+(visualization_msgs/MarkerArray) and ``/diagnostics``. Services ``~/save_database`` and
+``~/reset`` (std_srvs/Trigger).
+
+Threading: the subscription callback only decodes (zero-copy) or rejects a cloud and appends
+it to a bounded queue; when the queue is full the oldest waiting cloud is dropped (keep newest)
+and counted as skipped. One worker thread runs the detector and publishes, so the executor is
+never blocked by descriptor computation.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+from solid_ros.core.config import NodeConfig, SolidConfig
+from solid_ros.core.detector import LoopDetector
+from solid_ros.core.errors import CloudError, ConfigError, SolidError
+from solid_ros.formats.candidates import layout_dims, to_rows
+from solid_ros.formats.pointcloud2 import cloud_to_xyz
+from solid_ros.formats.poses import PoseError, odometry_to_pose
+from solid_ros.ros.params import apply_changes, declare_all
+from solid_ros.tools.runtime import tune_allocator, tune_thread_switching
+
+__all__ = ['NodeStats', 'SolidNode', 'main']
+
+_NS = 1_000_000_000
+_ODOM_BUFFER = 512
+_ODOM_WAIT_SEC = 0.25
+_ODOM_MAX_MISSES = 3  # waits in a row that saw no odometry before the node stops waiting
+_WARN_THROTTLE_SEC = 5.0
+
+
+@dataclass
+class NodeStats:
+    """Counters reported on /diagnostics."""
+
+    received: int = 0
+    processed: int = 0
+    skipped: int = 0
+    rejected: int = 0
+    failed: int = 0
+    loops: int = 0
+    without_odom: int = 0
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+class SolidNode(Node):
+    """The SOLiD loop-closure node; see the module docstring for its interface.
+
+    Raises:
+        ConfigError: a parameter is invalid (message names it and its allowed range).
+        DatabaseError: ``database_load_path`` cannot be loaded.
+    """
+
+    def __init__(self, *, context: Any = None, cli_args: list[str] | None = None,
+                 parameter_overrides: list[Parameter] | None = None) -> None:
+        super().__init__('solid_node', context=context, cli_args=cli_args,
+                         parameter_overrides=parameter_overrides)
+        try:
+            self._solid, self._cfg = declare_all(self)
+            self._detector = self._new_detector(load=True)
+        except BaseException:
+            super().destroy_node()
+            raise
+        self.stats = NodeStats()
+        self._times_ms: deque[float] = deque(maxlen=1000)
+        self._det_lock = threading.Lock()
+        self._cv = threading.Condition()
+        self._queue: deque[tuple[npt.NDArray[np.floating], int]] = deque(
+            maxlen=self._cfg.queue_size)
+        self._busy = False
+        self._stop = False
+        self._odom: deque[tuple[int, npt.NDArray[np.float64]]] = deque(maxlen=_ODOM_BUFFER)
+        self._odom_frame = ''
+        self._odom_misses = 0
+        self._positions: dict[int, npt.NDArray[np.float64]] = {}
+        self._edges: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = []
+
+        reliability = (ReliabilityPolicy.RELIABLE if self._cfg.qos_reliability == 'reliable'
+                       else ReliabilityPolicy.BEST_EFFORT)
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self._cfg.qos_depth,
+                         reliability=reliability)
+        # Deep history: a reliable writer drops unacknowledged samples beyond it, and a back
+        # end must not miss a loop when a burst of candidates meets a slow subscriber.
+        self._pub_cands = self.create_publisher(Float64MultiArray, '~/loop_candidates', 100)
+        self._pub_markers = self.create_publisher(MarkerArray, '~/loop_markers', 10)
+        self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(PointCloud2, 'points', self._on_points, qos)
+        if self._cfg.use_odom:
+            # Deep enough that a burst of odometry is not dropped before pairing.
+            odom_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
+                                  depth=max(100, self._cfg.qos_depth), reliability=reliability)
+            self._odom_sub = self.create_subscription(Odometry, 'odom', self._on_odom,
+                                                      odom_qos)
+        self.create_service(Trigger, '~/save_database', self._on_save)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        self.create_timer(self._cfg.diagnostics_period_sec, self._publish_diagnostics)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._worker = threading.Thread(target=self._run, name='solid_worker', daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f'ready: database {self._db_size()} scans, FOV {self._solid.fov_width_deg} deg, '
+            f'threshold {self._solid.distance_threshold}, queue {self._cfg.queue_size} '
+            f'(keep newest), points QoS {self._cfg.qos_reliability}/{self._cfg.qos_depth}')
+
+    # -- configuration -----------------------------------------------------------------------
+
+    @property
+    def solid_config(self) -> SolidConfig:
+        """The detector settings in force."""
+        return self._solid
+
+    @property
+    def node_config(self) -> NodeConfig:
+        """The node settings in force."""
+        return self._cfg
+
+    def _new_detector(self, *, load: bool) -> LoopDetector:
+        path = self._cfg.database_load_path
+        if load and path:
+            det = LoopDetector.load(path, self._solid)
+            self.get_logger().info(f'loaded database {path}')
+            return det
+        return LoopDetector(self._solid)
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        try:
+            solid, node_cfg = apply_changes(self._solid, self._cfg, params)
+            if solid != self._solid:
+                with self._det_lock:
+                    _update_detector_config(self._detector, solid)
+        except ConfigError as err:
+            return SetParametersResult(successful=False, reason=str(err))
+        self._solid, self._cfg = solid, node_cfg
+        return SetParametersResult(successful=True)
+
+    # -- input -------------------------------------------------------------------------------
+
+    def _on_points(self, msg: PointCloud2) -> None:
+        self.stats.received += 1
+        try:
+            points = cloud_to_xyz(msg)
+            if points.shape[0] == 0:
+                raise CloudError('cloud has no points')
+        except CloudError as err:
+            self.stats.rejected += 1
+            self.get_logger().warning(f'rejected PointCloud2 ({err}); {self.stats.rejected} '
+                                      'rejected so far', throttle_duration_sec=_WARN_THROTTLE_SEC)
+            return
+        item = (points, _stamp_ns(msg.header.stamp))
+        with self._cv:
+            if len(self._queue) == self._queue.maxlen:
+                self.stats.skipped += 1
+                self.get_logger().warning(
+                    f'processing falls behind: dropped the oldest waiting cloud '
+                    f'({self.stats.skipped} skipped so far)',
+                    throttle_duration_sec=_WARN_THROTTLE_SEC)
+            self._queue.append(item)
+            self._cv.notify_all()
+
+    def _on_odom(self, msg: Odometry) -> None:
+        try:
+            pose = odometry_to_pose(msg)
+        except PoseError as err:
+            self.get_logger().warning(f'odometry message skipped: {err}',
+                                      throttle_duration_sec=_WARN_THROTTLE_SEC)
+            return
+        with self._cv:
+            self._odom.append((_stamp_ns(msg.header.stamp), pose))
+            self._odom_frame = msg.header.frame_id
+            self._odom_misses = 0
+            self._cv.notify_all()
+
+    def _pose_for(self, stamp_ns: int) -> npt.NDArray[np.float64] | None:
+        """Nearest odometry pose within ``odom_tolerance_sec`` (waits briefly if odom lags)."""
+        if not self._cfg.use_odom:
+            return None
+        tol = int(self._cfg.odom_tolerance_sec * _NS)
+        deadline = time.monotonic() + _ODOM_WAIT_SEC
+        # Odometry often arrives just after its cloud: wait for one at or past it, but only
+        # when someone publishes odometry (an unused odom topic must not slow every scan),
+        # and not while a silent publisher has let several waits pass without a message.
+        publishing = self.count_publishers(self._odom_sub.topic_name) > 0
+        with self._cv:
+            waited = False
+            while (publishing and self._odom_misses < _ODOM_MAX_MISSES
+                   and (not self._odom or self._odom[-1][0] < stamp_ns)
+                   and not self._stop and time.monotonic() < deadline):
+                waited = True
+                self._cv.wait(deadline - time.monotonic())
+            if waited and (not self._odom or self._odom[-1][0] < stamp_ns):
+                self._odom_misses += 1
+            best = min(self._odom, key=lambda sp: abs(sp[0] - stamp_ns), default=None)
+        if best is None or abs(best[0] - stamp_ns) > tol:
+            return None
+        return best[1]
+
+    # -- processing --------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                points, stamp_ns = self._queue.popleft()
+                self._busy = True
+            try:
+                self._process(points, stamp_ns)
+            except Exception as err:  # the worker must survive any bad scan
+                self.stats.failed += 1
+                self.get_logger().error(f'processing failed: {type(err).__name__}: {err}',
+                                        throttle_duration_sec=_WARN_THROTTLE_SEC)
+            finally:
+                with self._cv:
+                    self._busy = False
+                    self._cv.notify_all()
+
+    def _process(self, points: npt.NDArray[np.floating], stamp_ns: int) -> None:
+        t0 = time.perf_counter()
+        pose = self._pose_for(stamp_ns)
+        with self._det_lock:
+            cands = self._detector.process(points, stamp_ns, pose=pose)
+        self._times_ms.append((time.perf_counter() - t0) * 1e3)
+        self.stats.processed += 1
+        if pose is None and self._cfg.use_odom:
+            self.stats.without_odom += 1
+        if pose is not None:
+            # Match positions of this session are looked up by the match stamp.
+            self._positions[stamp_ns] = pose[:3, 3].copy()
+            while len(self._positions) > self._solid.capacity:
+                del self._positions[next(iter(self._positions))]
+        if not cands:
+            return
+        self.stats.loops += len(cands)
+        self._pub_cands.publish(self._candidates_msg(cands))
+        self._add_edges(cands, pose)
+
+    def _candidates_msg(self, cands: Sequence[Any]) -> Float64MultiArray:
+        rows = to_rows(cands)
+        msg = Float64MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride)
+                          for label, size, stride in layout_dims(len(rows))]
+        msg.data = rows.reshape(-1).tolist()
+        return msg
+
+    def _add_edges(self, cands: Sequence[Any], pose: npt.NDArray[np.float64] | None) -> None:
+        if pose is None:
+            return
+        added = False
+        for c in cands:
+            match_pos = self._match_position(c)
+            if match_pos is not None:
+                self._edges.append((pose[:3, 3].copy(), match_pos))
+                added = True
+        if added:
+            self._pub_markers.publish(self._markers())
+
+    def _match_position(self, cand: Any) -> npt.NDArray[np.float64] | None:
+        # Positions are known for scans of this run (matched by stamp); earlier sessions
+        # loaded from a file get no edge.
+        if int(cand.match_session) != self._solid.session_id:
+            return None
+        return self._positions.get(int(cand.match_stamp_ns))
+
+    def _markers(self) -> MarkerArray:
+        m = Marker()
+        m.header.frame_id = self._odom_frame or 'map'
+        m.header.stamp = self.get_clock().now().to_msg()
+        m.ns, m.id = 'loop_edges', 0
+        m.type, m.action = Marker.LINE_LIST, Marker.ADD
+        m.pose.orientation.w = 1.0
+        m.scale.x = 0.1
+        m.color.r, m.color.g, m.color.b, m.color.a = 1.0, 0.2, 0.2, 1.0
+        for a, b in self._edges:
+            m.points.append(Point(x=float(a[0]), y=float(a[1]), z=float(a[2])))
+            m.points.append(Point(x=float(b[0]), y=float(b[1]), z=float(b[2])))
+        return MarkerArray(markers=[m])
+
+    # -- services and diagnostics -----------------------------------------------------------
+
+    def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Any:
+        path = self._cfg.database_save_path
+        if not path:
+            response.success, response.message = False, 'database_save_path is empty'
+            return response
+        try:
+            with self._det_lock:
+                size = self._db_size()
+                _save_atomic(self._detector, path)
+        except (SolidError, OSError) as err:
+            response.success, response.message = False, f'save failed: {err}'
+            self.get_logger().error(response.message)
+            return response
+        response.success, response.message = True, f'saved {size} scans to {path}'
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:
+        with self._cv:
+            self._queue.clear()
+        with self._det_lock:
+            self._detector = self._new_detector(load=False)
+        self._edges.clear()
+        self._positions.clear()
+        response.success, response.message = True, 'database cleared'
+        self.get_logger().info('database cleared by ~/reset')
+        return response
+
+    def _db_size(self) -> int:
+        return int(self._detector.database.size)
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Block until the queue is empty and the worker idle; return False on timeout."""
+        deadline = time.monotonic() + timeout
+        with self._cv:
+            while self._queue or self._busy:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cv.wait(left)
+        return True
+
+    def _publish_diagnostics(self) -> None:
+        s = self.stats
+        times = np.asarray(self._times_ms, dtype=np.float64)
+        pct = (np.percentile(times, [50, 95, 99]) if times.size else np.full(3, np.nan))
+        status = DiagnosticStatus(name='solid_node: loop detector', hardware_id='solid_ros')
+        status.level = DiagnosticStatus.WARN if (s.skipped or s.failed) else DiagnosticStatus.OK
+        status.message = (f'{s.processed} processed, {s.skipped} skipped, {s.rejected} rejected, '
+                          f'{s.loops} loops')
+        values = {
+            'clouds_received': s.received, 'clouds_processed': s.processed,
+            'clouds_skipped': s.skipped, 'clouds_rejected': s.rejected,
+            'clouds_failed': s.failed, 'clouds_without_odom': s.without_odom,
+            'loop_candidates': s.loops,
+            'database_size': self._db_size(), 'queue_length': len(self._queue),
+            'processing_ms_p50': f'{pct[0]:.2f}', 'processing_ms_p95': f'{pct[1]:.2f}',
+            'processing_ms_p99': f'{pct[2]:.2f}',
+            'processing_ms_max': f'{times.max():.2f}' if times.size else 'nan',
+        }
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub_diag.publish(msg)
+
+    def destroy_node(self) -> None:
+        """Stop and join the worker thread, then destroy the node."""
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if self._worker.is_alive() and self._worker is not threading.current_thread():
+            self._worker.join(timeout=10.0)
+        super().destroy_node()
+
+
+def _update_detector_config(detector: LoopDetector, config: SolidConfig) -> None:
+    """Apply tunable settings to a running detector (raises ConfigError if refused)."""
+    detector.reconfigure(config)
+
+
+def _save_atomic(detector: LoopDetector, path: str) -> None:
+    """Save the database; the core writes a temporary file and renames it over ``path``."""
+    Path(path).expanduser().parent.mkdir(parents=True, exist_ok=True)
+    detector.save(Path(path).expanduser())
+
+
+def main(args: list[str] | None = None) -> int:
+    """Run ``solid_node`` until SIGINT or ROS shutdown; return the process exit status."""
+    tune_allocator()
+    tune_thread_switching()
+    rclpy.init(args=args)
+    logger = rclpy.logging.get_logger('solid_node')
+    node: SolidNode | None = None
+    status = 0
+    try:
+        node = SolidNode()
+        rclpy.spin(node)
+    except ConfigError as err:
+        logger.fatal(f'invalid parameter: {err}')
+        status = 2
+    except SolidError as err:
+        logger.fatal(f'cannot start: {err}')
+        status = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+if __name__ == '__main__':
+    sys.exit(main())

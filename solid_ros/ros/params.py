@@ -1,0 +1,137 @@
+"""ROS parameters of ``solid_node``: declared from the config schema, validated by it.
+
+Every setting of :class:`~solid_ros.config.SolidConfig` and :class:`~solid_ros.config.NodeConfig`
+becomes a parameter whose :class:`ParameterDescriptor` carries the description, the range (or
+the allowed strings) and ``read_only`` for settings that change descriptor shape or node
+wiring. Start-up errors become :class:`~solid_ros.errors.ConfigError` naming the parameter and
+its range; runtime changes are checked by the same dataclass validation as the core.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+)
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterException,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from solid_ros.core.config import NodeConfig, ParamSpec, SolidConfig, param_specs
+from solid_ros.core.errors import ConfigError
+
+__all__ = ['apply_changes', 'declare_all', 'make_descriptor', 'unknown_overrides']
+
+_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+          float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+_TYPE_WORDS = {bool: 'true or false', int: 'an integer', float: 'a floating-point number',
+               str: 'a string'}
+_INT64 = (-(2**63), 2**63 - 1)
+# Parameters every rclpy node accepts besides its own.
+_STANDARD = frozenset({'use_sim_time', 'start_type_description_service'})
+
+
+def make_descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    """Return the ROS descriptor of one setting (type, description, range, read-only)."""
+    desc = ParameterDescriptor(name=spec.name, type=_TYPES[spec.type],
+                               description=spec.description, read_only=spec.read_only)
+    if spec.choices is not None:
+        desc.additional_constraints = spec.range_text()
+    elif spec.type is float and (spec.low is not None or spec.high is not None):
+        low = -sys.float_info.max if spec.low is None else float(spec.low)
+        high = sys.float_info.max if spec.high is None else float(spec.high)
+        desc.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
+    elif spec.type is int and (spec.low is not None or spec.high is not None):
+        low_i = _INT64[0] if spec.low is None else int(spec.low)
+        high_i = _INT64[1] if spec.high is None else int(spec.high)
+        desc.integer_range = [IntegerRange(from_value=low_i, to_value=high_i, step=0)]
+    return desc
+
+
+def unknown_overrides(names: Iterable[str]) -> list[str]:
+    """Return the override names that are not settings of the node (typos in a YAML file)."""
+    known = {s.name for s in param_specs()} | _STANDARD
+    return sorted(n for n in names if n not in known and not n.startswith('qos_overrides.'))
+
+
+def declare_all(node: Node) -> tuple[SolidConfig, NodeConfig]:
+    """Declare every setting on ``node`` and build the validated configurations.
+
+    Values come from the node's overrides (``--params-file``, ``-p``) or the schema defaults.
+
+    Raises:
+        ConfigError: an override is unknown, of the wrong type, out of range, or fails a
+            cross-parameter rule; the message names the parameter and the allowed values.
+    """
+    # rclpy silently ignores overrides that are never declared; a typo must not be ignored.
+    overrides: Mapping[str, Any] = getattr(node, '_parameter_overrides', {}) or {}
+    unknown = unknown_overrides(overrides)
+    if unknown:
+        raise ConfigError(f'{unknown[0]}: unknown parameter of solid_node (see '
+                          'config/solid.yaml for the valid names)')
+    values: dict[str, Any] = {}
+    for spec in param_specs():
+        try:
+            param = node.declare_parameter(spec.name, spec.default, make_descriptor(spec))
+        except InvalidParameterTypeException as err:
+            raise ConfigError(_type_message(spec, overrides.get(spec.name))) from err
+        except InvalidParameterValueException as err:
+            value = _override_value(overrides.get(spec.name))
+            raise ConfigError(f'{spec.name}: {value!r} is out of range; allowed '
+                              f'{spec.range_text()}') from err
+        except ParameterException as err:
+            raise ConfigError(f'{spec.name}: {err}') from err
+        values[spec.name] = param.value
+    solid = SolidConfig.from_dict(values, strict=False)
+    node_cfg = NodeConfig.from_dict(values, strict=False)
+    return solid, node_cfg
+
+
+def apply_changes(solid: SolidConfig, node_cfg: NodeConfig,
+                  params: Iterable[Parameter]) -> tuple[SolidConfig, NodeConfig]:
+    """Return the configurations with runtime parameter changes applied and validated.
+
+    Raises:
+        ConfigError: a value is invalid or the setting is read-only; the message says why.
+    """
+    specs = {s.name: s for s in param_specs()}
+    solid_changes: dict[str, Any] = {}
+    node_changes: dict[str, Any] = {}
+    solid_names = {s.name for s in SolidConfig.specs()}
+    for p in params:
+        spec = specs.get(p.name)
+        if spec is None:
+            if p.name in _STANDARD:
+                continue
+            raise ConfigError(f'{p.name}: unknown parameter')
+        if spec.read_only:
+            raise ConfigError(f'{p.name}: read-only at runtime (changes descriptor shape or '
+                              'node wiring); restart the node with the new value')
+        target = solid_changes if p.name in solid_names else node_changes
+        target[p.name] = p.value
+    new_solid = solid.replace(**solid_changes) if solid_changes else solid
+    new_node = node_cfg.replace(**node_changes) if node_changes else node_cfg
+    return new_solid, new_node
+
+
+def _override_value(param: Any) -> Any:
+    return getattr(param, 'value', param)
+
+
+def _type_message(spec: ParamSpec, override: Any) -> str:
+    value = _override_value(override)
+    msg = (f'{spec.name}: expected {_TYPE_WORDS[spec.type]} in {spec.range_text()}, '
+           f'got {value!r}')
+    if spec.type is float and isinstance(value, int) and not isinstance(value, bool):
+        msg += f' (write {float(value)!r}: ROS 2 rejects an integer for a double parameter)'
+    return msg

@@ -1,0 +1,1 @@
+"""Offline tools: bag replay, the demo, evaluation metrics, plots, progress display."""

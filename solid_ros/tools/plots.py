@@ -1,0 +1,149 @@
+"""PNG plots of a replay evaluation (matplotlib, Agg backend; imported only when plotting)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.tools.evaluation import Evaluation
+
+__all__ = ['PLOT_FILES', 'write_plots']
+
+PLOT_FILES = ('pr_curve.png', 'trajectory.png', 'distance_hist.png', 'yaw_error_hist.png')
+_TRUE, _FALSE, _GREY = '#1b9e4b', '#d7301f', '#9a9a9a'
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _pr(plt: Any, ev: Evaluation, threshold: float, path: Path) -> None:
+    c = ev.curve
+    m = ev.metrics()
+    fig, ax = plt.subplots(figsize=(6, 5), dpi=110)
+    if c.thresholds.size:
+        ax.plot(np.concatenate(([0.0], c.recall)), np.concatenate(([1.0], c.precision)),
+                color='#2c7fb8', lw=2, drawstyle='steps-post', label='best match per query')
+        f1, tau, k = ev.f1_max()
+        if k >= 0:
+            ax.plot(c.recall[k], c.precision[k], 'o', color=_TRUE, ms=9,
+                    label=f'F1max {f1:.3f} at distance {tau:.4f}')
+        _, zr, kz = ev.zero_fp()
+        if kz >= 0:
+            ax.plot(c.recall[kz], c.precision[kz], 's', color='#fd8d3c', ms=8,
+                    label=f'zero-FP: recall {zr:.3f}')
+        op = np.searchsorted(c.thresholds, threshold, side='left') - 1
+        if op >= 0:
+            ax.plot(c.recall[op], c.precision[op], 'x', color='black', ms=10, mew=2,
+                    label=f'configured threshold {threshold:g}')
+    auc = m['roc_auc']
+    ax.set(xlim=(-0.02, 1.02), ylim=(-0.02, 1.05), xlabel='recall', ylabel='precision',
+           title=f'Precision-recall ({m["queries_with_true_loop"]} true-loop queries, '
+                 f'ROC AUC {auc:.3f})' if auc is not None else 'Precision-recall')
+    ax.grid(alpha=0.3)
+    ax.legend(loc='lower left', fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _trajectory(plt: Any, ev: Evaluation, pos: npt.NDArray[np.float64],
+                match: npt.NDArray[np.intp], path: Path) -> None:
+    fig, ax = plt.subplots(figsize=(6.5, 6), dpi=110)
+    ax.plot(pos[:, 0], pos[:, 1], '-', color=_GREY, lw=1, label='trajectory')
+    pos_q = np.flatnonzero(ev.truth.has_loop)
+    ax.plot(pos[pos_q, 0], pos[pos_q, 1], '.', color='#74a9cf', ms=4,
+            label=f'queries with a true loop ({len(pos_q)})')
+    acc = np.flatnonzero(ev.accepted & (match >= 0))
+    counts = {True: 0, False: 0}
+    for q in acc:
+        ok = bool(ev.correct[q])
+        counts[ok] += 1
+        a, b = pos[q], pos[match[q]]
+        ax.plot([a[0], b[0]], [a[1], b[1]], '-', color=_TRUE if ok else _FALSE,
+                lw=1.6 if ok else 1.2, alpha=0.85)
+    ax.plot([], [], '-', color=_TRUE, label=f'accepted loop, true ({counts[True]})')
+    ax.plot([], [], '-', color=_FALSE, label=f'accepted loop, false ({counts[False]})')
+    if len(pos):
+        ax.plot(pos[0, 0], pos[0, 1], 'k^', ms=7, label='start')
+    ax.set(xlabel='x (m)', ylabel='y (m)', title='Trajectory and accepted loop edges')
+    ax.set_aspect('equal', adjustable='datalim')
+    ax.grid(alpha=0.3)
+    ax.legend(loc='best', fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _distances(plt: Any, ev: Evaluation, threshold: float, path: Path) -> None:
+    sel = ev.has_best & ev.truth.valid
+    d = ev.distance[sel]
+    ok = ev.correct[sel]
+    fig, ax = plt.subplots(figsize=(6.5, 4.5), dpi=110)
+    hi = float(np.nanmax(d)) if d.size else 1.0
+    bins = np.linspace(0.0, max(hi, threshold) * 1.02 + 1e-9, 40)
+    ax.hist(d[ok], bins=bins, color=_TRUE, alpha=0.7, label=f'true match ({int(ok.sum())})')
+    ax.hist(d[~ok], bins=bins, color=_FALSE, alpha=0.6,
+            label=f'false match ({int((~ok).sum())})')
+    ax.axvline(threshold, color='black', ls='--', lw=1.2, label=f'configured {threshold:g}')
+    _, tau, _ = ev.f1_max()
+    if tau is not None:
+        ax.axvline(tau, color='#2c7fb8', ls=':', lw=1.6, label=f'F1max at {tau:.4f}')
+    ax.set(xlabel='cosine distance of the best match', ylabel='queries',
+           title='Best-match distance: true vs false matches')
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _yaw(plt: Any, ev: Evaluation, path: Path) -> None:
+    e = ev.yaw_error_deg[np.isfinite(ev.yaw_error_deg)]
+    fig, ax = plt.subplots(figsize=(6.5, 4.5), dpi=110)
+    if e.size:
+        ax.hist(e, bins=np.linspace(0.0, max(float(e.max()), 1.0) * 1.02, 30), color='#756bb1')
+        ax.axvline(float(np.median(e)), color='black', ls='--',
+                   label=f'median {np.median(e):.2f} deg')
+        ax.axvline(float(np.percentile(e, 95)), color='#d95f0e', ls=':',
+                   label=f'95th percentile {np.percentile(e, 95):.2f} deg')
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, 'no true matches', ha='center', va='center', transform=ax.transAxes)
+    ax.set(xlabel='|yaw error| (deg)', ylabel='true matches',
+           title=f'Yaw error over true best matches (n={e.size})')
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
+                match: npt.ArrayLike, threshold: float) -> list[Path]:
+    """Write the four evaluation plots and return their paths.
+
+    Args:
+        out_dir: existing directory.
+        ev: evaluation of the replay.
+        positions: (K, 3) reference positions per keyframe.
+        match: (K,) best match per keyframe (this session), -1 when none.
+        threshold: the configured distance_threshold (marked on the plots).
+    """
+    plt = _pyplot()
+    out = Path(out_dir)
+    pos = np.asarray(positions, dtype=np.float64)
+    m = np.asarray(match, dtype=np.intp)
+    paths = [out / name for name in PLOT_FILES]
+    _pr(plt, ev, threshold, paths[0])
+    _trajectory(plt, ev, pos, m, paths[1])
+    _distances(plt, ev, threshold, paths[2])
+    _yaw(plt, ev, paths[3])
+    return paths

@@ -1,0 +1,574 @@
+"""solid_replay: run the node's loop detector over a recorded bag, with metrics and plots.
+
+The detector is the node's: the same :class:`~solid_ros.detector.LoopDetector`, configured by
+:meth:`SolidConfig.from_yaml` from the same parameter file, fed the same decoded clouds
+(:func:`~solid_ros.pointcloud2.cloud_to_xyz`), header stamps, and odometry poses paired within
+``odom_tolerance_sec`` exactly as the node pairs them.
+
+Usage: ``solid_replay BAG [--params FILE.yaml] [--topic /points]
+[--odom-topic T | --poses FILE [--times FILE]] [--out DIR] [--load-db F] [--save-db F]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import platform
+import resource
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.config import NodeConfig, SolidConfig, load_yaml_parameters
+from solid_ros.core.detector import LoopCandidate, LoopDetector
+from solid_ros.core.errors import ConfigError, SolidError
+from solid_ros.formats.bags import Bag, select_cloud_topic, select_odom_topic
+from solid_ros.formats.poses import PoseError, PoseTrack, associate, load_reference
+from solid_ros.tools.evaluation import Evaluation, evaluate, sweep_table
+from solid_ros.tools.progress import Progress
+from solid_ros.tools.runtime import tune_allocator
+
+__all__ = ['ReplayResult', 'build_parser', 'main', 'replay']
+
+PROG = 'solid_replay'
+CSV_COLUMNS = ('query_index', 'match_index', 'query_stamp_ns', 'match_stamp_ns',
+               'match_session', 'distance', 'yaw', 'margin', 'accepted', 'best',
+               'true_match', 'gt_distance_m', 'yaw_gt')
+
+
+@dataclass
+class ReplayResult:
+    """Everything one replay produced.
+
+    Attributes:
+        candidates: accepted loop candidates in order (what the node would publish).
+        best: per keyframe, its best match accepted or not (None when the database had no
+            eligible scan).
+        accepted: per keyframe, whether its best match was accepted.
+        stamps_ns: per keyframe, its stamp.
+        reference: per keyframe, the reference pose (NaN where unknown), or None.
+        evaluation: metrics object when reference poses were available.
+        report: the JSON report (also written to ``out_dir/report.json``).
+        files: files written.
+    """
+
+    bag: Path
+    topic: str
+    config: SolidConfig
+    messages: int
+    skipped: int
+    keyframes: int
+    candidates: list[LoopCandidate]
+    best: list[LoopCandidate | None]
+    accepted: npt.NDArray[np.bool_]
+    stamps_ns: npt.NDArray[np.int64]
+    reference: npt.NDArray[np.float64] | None
+    evaluation: Evaluation | None
+    report: dict[str, Any]
+    wall_sec: float
+    files: list[Path] = field(default_factory=list)
+
+    @property
+    def metrics(self) -> dict[str, Any] | None:
+        """``report['metrics']`` (None without reference poses)."""
+        return self.report.get('metrics')
+
+    @property
+    def scans_per_sec(self) -> float:
+        """End-to-end throughput (read + decode + detect) over decoded scans."""
+        return (self.messages - self.skipped) / self.wall_sec if self.wall_sec > 0 else 0.0
+
+
+def _percentiles(ms: Sequence[float]) -> dict[str, float | None]:
+    if not ms:
+        return {'mean': None, 'p50': None, 'p90': None, 'p99': None, 'max': None}
+    a = np.asarray(ms, dtype=np.float64)
+    p50, p90, p99 = np.percentile(a, [50, 90, 99])
+    return {'mean': float(a.mean()), 'p50': float(p50), 'p90': float(p90),
+            'p99': float(p99), 'max': float(a.max())}
+
+
+def _versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    import solid_ros
+
+    out = {'solid_ros': solid_ros.__version__, 'python': platform.python_version()}
+    for pkg in ('numpy', 'scipy', 'rosbags', 'matplotlib'):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = 'absent'
+    return out
+
+
+def load_config(params: str | Path | None, node_name: str = 'solid_node',
+                overrides: dict[str, Any] | None = None) -> tuple[SolidConfig, NodeConfig]:
+    """Read the detector and node settings from a parameter file, as the node does.
+
+    Raises:
+        ConfigError: unreadable file, unknown key or invalid value (named).
+    """
+    values: dict[str, Any] = {}
+    if params is not None:
+        values = load_yaml_parameters(params, node_name)
+    values.update(overrides or {})
+    SolidConfig.from_dict(values)  # strict: unknown keys are errors, as in the node
+    return (SolidConfig.from_dict(values, strict=False),
+            NodeConfig.from_dict(values, strict=False))
+
+
+def replay(bag: str | Path, config: SolidConfig | None = None, *,
+           node_config: NodeConfig | None = None, topic: str | None = None,
+           odom_topic: str | None = None, use_odom: bool | None = None,
+           poses: str | Path | None = None, times: str | Path | None = None,
+           radius: float = 5.0, max_heading_deg: float | None = None,
+           out_dir: str | Path | None = None, load_db: str | Path | None = None,
+           save_db: str | Path | None = None, progress: str = 'auto',
+           plots: bool = True, params_file: str | Path | None = None,
+           stream: TextIO | None = None) -> ReplayResult:
+    """Replay a bag through the node's detector and evaluate it when poses are known.
+
+    Args:
+        bag: ROS 2 bag directory (MCAP or sqlite3) or ROS 1 .bag file.
+        config: detector settings (default ``SolidConfig()``).
+        node_config: node settings (odometry use and pairing tolerance).
+        topic: PointCloud2 topic (default: the bag's only one).
+        odom_topic: Odometry topic fed to the detector as the node's ``odom`` (default: the
+            bag's only one, if any) and used as reference when ``poses`` is not given.
+        use_odom: feed odometry to the detector (default ``node_config.use_odom``).
+        poses: reference poses file (KITTI 3x4 or TUM); KITTI files pair with scans by order
+            unless ``times`` gives their stamps.
+        times: stamps of a KITTI poses file.
+        radius: true-loop distance in metres.
+        max_heading_deg: also require headings within this many degrees for a true loop.
+        out_dir: where to write candidates.csv, report.json and plots (None: nothing).
+        load_db: database file to load before the run (its scans are searched too).
+        save_db: where to save the database after the run.
+        progress: 'auto', 'bar', 'lines' or 'quiet'.
+        plots: write PNG plots to ``out_dir`` when poses are available.
+        params_file: recorded in the report.
+        stream: progress stream (default stderr).
+
+    Raises:
+        SolidError: any problem with the inputs (BagError, ConfigError, DatabaseError,
+            PoseError), with a one-line message.
+    """
+    cfg = config if config is not None else SolidConfig()
+    ncfg = node_config if node_config is not None else NodeConfig()
+    feed_odom = ncfg.use_odom if use_odom is None else use_odom
+    if times is not None and poses is None:
+        raise PoseError('--times needs --poses')
+    if not radius > 0.0:
+        raise ConfigError(f'radius must be positive, got {radius}')
+    file_track = load_reference(poses, times) if poses is not None else None
+    detector = LoopDetector.load(load_db, cfg) if load_db is not None else LoopDetector(cfg)
+    t_start = time.perf_counter()
+    with Bag(bag) as b:
+        cloud_topic = select_cloud_topic(b, topic)
+        odom_name = select_odom_topic(b, odom_topic)
+        odom_track = b.odometry(odom_name) if odom_name is not None else None
+        total = b.topics[cloud_topic].count
+        if file_track is not None and file_track.stamps_ns is None and len(file_track) != total:
+            raise PoseError(f'{file_track.source} has {len(file_track)} poses but '
+                            f'{cloud_topic} has {total} clouds; pair them with --times')
+        prog = Progress(total, progress, stream)
+        tol = int(round(ncfg.odom_tolerance_sec * 1e9))
+        odom_idx_of: dict[int, int] = {}
+        stamps: list[int] = []
+        seqs: list[int] = []
+        kf_stamps: list[int] = []
+        kf_seq: list[int] = []
+        best: list[LoopCandidate | None] = []
+        accepted: list[bool] = []
+        candidates: list[LoopCandidate] = []
+        skipped: list[tuple[int, str]] = []
+        read_ms: list[float] = []
+        detect_ms: list[float] = []
+        messages = 0
+        clouds = b.clouds(cloud_topic)
+        try:
+            while True:
+                t0 = time.perf_counter()
+                scan = next(clouds, None)
+                t1 = time.perf_counter()
+                if scan is None:
+                    break
+                messages += 1
+                if scan.points is None:
+                    skipped.append((scan.seq, scan.error or 'undecodable'))
+                    prog.update(1, skipped=1)
+                    continue
+                pose = None
+                if feed_odom and odom_track is not None:
+                    k = _nearest(odom_track, scan.stamp_ns, tol, odom_idx_of)
+                    pose = odom_track.poses[k] if k >= 0 else None
+                try:
+                    cands = detector.process(scan.points, scan.stamp_ns, pose=pose)
+                except SolidError as err:  # a cloud the core rejects is skipped like the node
+                    skipped.append((scan.seq, str(err)))
+                    prog.update(1, skipped=1)
+                    continue
+                t2 = time.perf_counter()
+                read_ms.append((t1 - t0) * 1e3)
+                detect_ms.append((t2 - t1) * 1e3)
+                stamps.append(scan.stamp_ns)
+                seqs.append(scan.seq)
+                if detector.last_was_keyframe:
+                    kf_stamps.append(scan.stamp_ns)
+                    kf_seq.append(scan.seq)
+                    top = detector.last_best
+                    best.append(top)
+                    accepted.append(top is not None and any(
+                        c.match_index == top.match_index and c.match_session == top.match_session
+                        for c in cands))
+                candidates.extend(cands)
+                prog.update(1)
+        except BaseException:
+            prog.clear()
+            raise
+        prog.close()
+    wall = time.perf_counter() - t_start
+    if save_db is not None:
+        detector.save(save_db)
+
+    # Reference pose per keyframe.
+    kf_stamp_arr = np.asarray(kf_stamps, dtype=np.int64)
+    track = file_track if file_track is not None else odom_track
+    reference = None
+    if track is not None:
+        if track.stamps_ns is None:
+            idx = np.asarray(kf_seq, dtype=np.intp)
+        else:
+            idx = associate(kf_stamp_arr, track.stamps_ns, tol)
+        reference = np.full((len(kf_seq), 4, 4), np.nan)
+        have = idx >= 0
+        reference[have] = track.poses[idx[have]]
+        if len(kf_seq) and not have.any():
+            raise PoseError(f'no reference pose of {track.source} lies within '
+                            f'{ncfg.odom_tolerance_sec} s of a scan stamp')
+
+    acc = np.asarray(accepted, dtype=bool)
+    ev = None
+    if reference is not None:
+        ev = _evaluate(cfg, best, acc, kf_stamp_arr, reference, radius, max_heading_deg)
+    db = detector.database
+    report: dict[str, Any] = {
+        'tool': PROG,
+        'versions': _versions(),
+        'bag': str(bag),
+        'format': 'ros1' if b.is_ros1 else 'ros2',
+        'topic': cloud_topic,
+        'odom_topic': odom_name,
+        'odometry_fed_to_detector': bool(feed_odom and odom_track is not None),
+        'reference': None if track is None else track.source,
+        'params_file': None if params_file is None else str(params_file),
+        'config': cfg.to_dict(),
+        'config_fingerprint': cfg.fingerprint(),
+        'node_config': ncfg.to_dict(),
+        'scans': {'messages': messages, 'decoded': len(stamps), 'skipped': len(skipped),
+                  'keyframes': len(kf_stamps), 'accepted_loops': len(candidates),
+                  'skip_reasons': [{'seq': s, 'reason': r} for s, r in skipped[:20]]},
+        'timings': {'wall_sec': wall,
+                    'scans_per_sec': len(stamps) / wall if wall > 0 else None,
+                    'read_decode_ms': _percentiles(read_ms),
+                    'detect_ms': _percentiles(detect_ms)},
+        'database': {'size': db.size, 'bytes': db.nbytes,
+                     'bytes_per_scan': db.bytes_per_scan,
+                     'peak_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0},
+        'metrics': None,
+        'threshold_sweep': None,
+        'loaded_database': None if load_db is None else str(load_db),
+        'saved_database': None if save_db is None else str(save_db),
+    }
+    if ev is not None:
+        report['metrics'] = ev.metrics()
+        report['threshold_sweep'] = sweep_table(ev)
+    result = ReplayResult(Path(bag), cloud_topic, cfg, messages, len(skipped), len(kf_stamps),
+                          candidates, best, acc, kf_stamp_arr, reference, ev, report, wall)
+    if out_dir is not None:
+        result.files = _write_outputs(Path(out_dir), result, plots)
+    return result
+
+
+def _nearest(track: PoseTrack, stamp: int, tol: int, cache: dict[int, int]) -> int:
+    if stamp not in cache:
+        assert track.stamps_ns is not None
+        cache[stamp] = int(associate([stamp], track.stamps_ns, tol)[0])
+    return cache[stamp]
+
+
+def _evaluate(cfg: SolidConfig, best: list[LoopCandidate | None], acc: npt.NDArray[np.bool_],
+              stamps: npt.NDArray[np.int64], reference: npt.NDArray[np.float64], radius: float,
+              max_heading_deg: float | None) -> Evaluation:
+    n = len(best)
+    match = np.full(n, -1, dtype=np.intp)
+    dist = np.full(n, np.nan)
+    yaw = np.zeros(n)
+    foreign = np.zeros(n, bool)
+    for i, b in enumerate(best):
+        if b is None:
+            continue
+        dist[i], yaw[i] = b.distance, b.yaw
+        if b.match_session == cfg.session_id and 0 <= b.match_index < n:
+            match[i] = b.match_index
+        else:  # a loaded session: no reference pose, so it counts as false
+            foreign[i] = True
+    return evaluate(reference[:, :3, 3], match, dist, yaw, acc, radius=radius,
+                    rotations=reference[:, :3, :3], max_heading_deg=max_heading_deg,
+                    stamps_ns=stamps, exclude_frames=cfg.exclude_recent_frames,
+                    exclude_sec=cfg.exclude_recent_sec, foreign=foreign)
+
+
+def _write_outputs(out: Path, r: ReplayResult, plots: bool) -> list[Path]:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise SolidError(f'cannot create output directory {out}: {err.strerror}') from err
+    files = [out / 'candidates.csv', out / 'report.json']
+    try:
+        _write_csv(files[0], r)
+        if plots and r.evaluation is not None and r.reference is not None:
+            from solid_ros.tools.plots import write_plots
+
+            files += write_plots(out, r.evaluation, r.reference[:, :3, 3], _match_rows(r),
+                                 threshold=r.config.distance_threshold)
+        r.report['files'] = [str(f) for f in files]
+        files[1].write_text(json.dumps(_jsonable(r.report), indent=2) + '\n', encoding='utf-8')
+    except OSError as err:
+        raise SolidError(f'cannot write to {out}: {err.strerror or err}') from err
+    return files
+
+
+def _match_rows(r: ReplayResult) -> npt.NDArray[np.intp]:
+    out = np.full(len(r.best), -1, dtype=np.intp)
+    for i, b in enumerate(r.best):
+        if b is not None and b.match_session == r.config.session_id:
+            out[i] = b.match_index
+    return out
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    return obj
+
+
+def _write_csv(path: Path, r: ReplayResult) -> None:
+    ev = r.evaluation
+    ref = r.reference
+    with path.open('w', newline='', encoding='utf-8') as fh:
+        w = csv.writer(fh)
+        w.writerow(CSV_COLUMNS)
+        by_query: dict[int, list[LoopCandidate]] = {}
+        for c in r.candidates:
+            by_query.setdefault(c.query_index, []).append(c)
+        for i, b in enumerate(r.best):
+            if b is None:
+                continue
+            rows = [(b, bool(r.accepted[i]), True)]
+            rows += [(c, True, False) for c in by_query.get(b.query_index, [])
+                     if (c.match_index, c.match_session) != (b.match_index, b.match_session)]
+            for c, acc, is_best in rows:
+                true, gtd, gty = '', '', ''
+                if ev is not None and ref is not None and c.match_session == r.config.session_id \
+                        and 0 <= c.match_index < len(ref):
+                    q, m = ref[c.query_index], ref[c.match_index]
+                    d = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+                    if math.isfinite(d):
+                        rel = m[:3, :3].T @ q[:3, :3]
+                        yaw_gt = math.atan2(rel[1, 0], rel[0, 0])
+                        ok = d <= ev.radius and (ev.max_heading_deg is None or abs(
+                            math.degrees(yaw_gt)) <= ev.max_heading_deg)
+                        true, gtd, gty = str(int(ok)), f'{d:.3f}', f'{yaw_gt:.6f}'
+                w.writerow([c.query_index, c.match_index, c.query_stamp_ns, c.match_stamp_ns,
+                            c.match_session, f'{c.distance:.6f}', f'{c.yaw:.6f}',
+                            f'{c.margin:.6f}' if math.isfinite(c.margin) else 'inf',
+                            int(acc), int(is_best), true, gtd, gty])
+
+
+# ------------------------------------------------------------------------------ command line
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> Any:  # one line, no usage dump
+        self.exit(2, f'{self.prog}: error: {message} (see --help)\n')
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line parser (``solid_replay --help``)."""
+    p = _Parser(
+        prog=PROG,
+        description='Replay a recorded bag through the same SOLiD loop detector the node runs '
+                    '(same parameter file), print loop candidates and, given reference poses, '
+                    'evaluate them: Recall@1, PR curve, F1max and its threshold, ROC AUC, yaw '
+                    'error; write candidates.csv, report.json and plots with --out.',
+        epilog='Reference poses come from --poses (KITTI 3x4 rows, paired with scans by order '
+               'or by --times stamps; or TUM "stamp tx ty tz qx qy qz qw") or else from the '
+               "bag's Odometry topic. A query has a true loop when an earlier scan outside the "
+               'exclusion window lies within --radius metres. Exit status: 0 ok, 1 bad input '
+               '(bag, poses, parameters, database), 2 bad command line.')
+    p.add_argument('bag', help='ROS 2 bag directory (MCAP or sqlite3) or ROS 1 .bag file')
+    p.add_argument('--params', metavar='FILE.yaml',
+                   help='ROS 2 parameter file as given to the node (default: built-in '
+                        "defaults = the SOLiD authors' parameters)")
+    p.add_argument('--node-name', default='solid_node', metavar='NAME',
+                   help='node block read from --params (default: %(default)s)')
+    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='override one parameter after --params (repeatable), e.g. '
+                        '--set distance_threshold=0.08')
+    p.add_argument('--topic', help='PointCloud2 topic (default: the only one in the bag; '
+                                   'the choices are listed when there are several)')
+    p.add_argument('--odom-topic', metavar='T',
+                   help="nav_msgs/Odometry topic: fed to the detector like the node's odom and "
+                        'used as reference poses unless --poses is given (default: the only '
+                        'one in the bag, if any)')
+    p.add_argument('--no-odom', action='store_true',
+                   help='do not feed odometry to the detector (like use_odom: false)')
+    p.add_argument('--poses', metavar='FILE',
+                   help='reference poses: KITTI 3x4 (one per scan, or per --times stamp) or TUM')
+    p.add_argument('--times', metavar='FILE',
+                   help='stamps in seconds, one per line, for a KITTI --poses file')
+    p.add_argument('--radius', type=float, default=5.0, metavar='M',
+                   help='true-loop distance in metres (default: %(default)s)')
+    p.add_argument('--max-heading-deg', type=float, metavar='DEG',
+                   help='also require a heading difference below this for a true loop')
+    p.add_argument('--out', metavar='DIR',
+                   help='write candidates.csv, report.json and PNG plots here')
+    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    p.add_argument('--load-db', metavar='F', help='database file to search as well (saved '
+                                                  'by the node or --save-db)')
+    p.add_argument('--save-db', metavar='F', help='save the database after the run')
+    p.add_argument('--progress', choices=('auto', 'bar', 'lines'), default='auto',
+                   help='progress display: bar on a terminal, plain lines otherwise '
+                        '(default: %(default)s)')
+    p.add_argument('-q', '--quiet', action='store_true',
+                   help='no progress and no summary; errors only')
+    return p
+
+
+def _overrides(items: list[str]) -> dict[str, Any]:
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition('=')
+        if not sep or not key:
+            raise ConfigError(f'--set expects KEY=VALUE, got {item!r}')
+        try:
+            out[key.strip()] = yaml.safe_load(text)
+        except yaml.YAMLError as err:
+            raise ConfigError(f'--set {key}: cannot parse {text!r}') from err
+    return out
+
+
+def _fmt(v: Any, spec: str = '.3f') -> str:
+    if v is None:
+        return 'n/a'
+    if isinstance(v, float) and not math.isfinite(v):
+        return 'inf'
+    return format(v, spec)
+
+
+def summary_lines(r: ReplayResult) -> list[str]:
+    """The human summary printed at the end of a run."""
+    rep = r.report
+    t = rep['timings']
+    det = t['detect_ms']
+    lines = [
+        f'{PROG} summary',
+        f'  bag               {r.bag} ({rep["format"]}, {r.topic})',
+        f'  scans             {r.messages} read, {r.skipped} skipped, {r.keyframes} keyframes',
+        f'  loops accepted    {len(r.candidates)} (distance_threshold '
+        f'{r.config.distance_threshold})',
+        f'  throughput        {_fmt(t["scans_per_sec"], ".1f")} scans/s end to end '
+        f'({t["wall_sec"]:.2f} s)',
+        f'  detect ms         p50 {_fmt(det["p50"], ".2f")}  p90 {_fmt(det["p90"], ".2f")}  '
+        f'p99 {_fmt(det["p99"], ".2f")}  max {_fmt(det["max"], ".2f")}',
+        f'  database          {rep["database"]["size"]} scans, '
+        f'{rep["database"]["bytes"] / 1e6:.2f} MB',
+    ]
+    m = rep['metrics']
+    if m is None:
+        lines.append('  evaluation        none (no reference poses: give --poses or an '
+                     'Odometry topic)')
+        return lines
+    ye = m['yaw_error_deg']
+    acc = m['accepted']
+    lines += [
+        f'  reference         {rep["reference"]} (radius {m["radius_m"]} m; '
+        f'{m["queries_with_true_loop"]} of {m["queries"]} queries have a true loop)',
+        f'  Recall@1          {_fmt(m["recall_at_1"])}',
+        f'  F1max             {_fmt(m["f1_max"])} at distance {_fmt(m["f1_max_threshold"], ".4f")}'
+        f' (P {_fmt(m["f1_max_precision"])}, R {_fmt(m["f1_max_recall"])})',
+        f'  zero-FP           recall {_fmt(m["zero_fp_recall"])} up to distance '
+        f'{_fmt(m["zero_fp_threshold"], ".4f")}',
+        f'  ROC AUC           {_fmt(m["roc_auc"])}',
+        f'  accepted loops    {acc["true"]} true, {acc["false"]} false '
+        f'(precision {_fmt(acc["precision"])}, recall {_fmt(acc["recall"])})',
+        f'  yaw error deg     mean {_fmt(ye["mean"], ".2f")}  median {_fmt(ye["median"], ".2f")}'
+        f'  p95 {_fmt(ye["p95"], ".2f")}  max {_fmt(ye["max"], ".2f")}  (n={ye["count"]})',
+    ]
+    sweep = rep['threshold_sweep'] or []
+    if sweep:
+        lines.append('  threshold sweep   threshold  precision  recall  f1     tp   fp')
+        for row in sweep:
+            lines.append(f'                    {row["threshold"]:<9}  {row["precision"]:.3f}'
+                         f'      {row["recall"]:.3f}   {row["f1"]:.3f}  {row["tp"]:<4} '
+                         f'{row["fp"]}')
+    if m['recommended_distance_threshold'] is not None:
+        lines.append('  paste into YAML:')
+        lines.append(f'    distance_threshold: {m["recommended_distance_threshold"]}'
+                     f'   # F1max {m["f1_max"]:.3f} on this data')
+    if m['recommended_zero_fp_threshold'] is not None:
+        lines.append(f'    distance_threshold: {m["recommended_zero_fp_threshold"]}'
+                     f'   # no false positive on this data (recall {m["zero_fp_recall"]:.3f})')
+    if r.files:
+        lines.append(f'  outputs           {", ".join(str(f) for f in r.files)}')
+    return lines
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``solid_replay``; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.times and not args.poses:
+        parser.error('--times needs --poses')
+    progress = 'quiet' if args.quiet else args.progress
+    tune_allocator()
+    try:
+        cfg, ncfg = load_config(args.params, args.node_name, _overrides(args.set))
+        result = replay(args.bag, cfg, node_config=ncfg, topic=args.topic,
+                        odom_topic=args.odom_topic, use_odom=False if args.no_odom else None,
+                        poses=args.poses, times=args.times, radius=args.radius,
+                        max_heading_deg=args.max_heading_deg, out_dir=args.out,
+                        load_db=args.load_db, save_db=args.save_db, progress=progress,
+                        plots=not args.no_plots, params_file=args.params)
+    except SolidError as err:
+        print(f'{PROG}: error: {" ".join(str(err).split())}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f'{PROG}: interrupted', file=sys.stderr)
+        return 130
+    if not args.quiet:
+        print('\n'.join(summary_lines(result)))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,92 @@
+"""Cosine distance and heading: conventions, sub-bin accuracy on real rotated scans."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from solid_ros import SolidConfig, cosine_distance, describe, estimate_yaw
+from solid_ros.formats.pointfiles import read_pcd
+
+
+def rotate(points: np.ndarray, yaw: float) -> np.ndarray:
+    """Return points turned CCW by yaw radians about +z."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    out = points.copy()
+    out[:, 0] = c * points[:, 0] - s * points[:, 1]
+    out[:, 1] = s * points[:, 0] + c * points[:, 1]
+    return out
+
+
+def angle_error_deg(a: float, b: float) -> float:
+    return abs(math.degrees(math.remainder(a - b, 2 * math.pi)))
+
+
+def test_cosine_distance_range_and_degenerate_vectors() -> None:
+    a = np.array([1.0, 2.0, 3.0])
+    assert cosine_distance(a, a) == pytest.approx(0.0, abs=1e-12)
+    assert cosine_distance(a, 2 * a) == pytest.approx(0.0, abs=1e-12)
+    assert cosine_distance(a, -a) == pytest.approx(2.0)
+    assert cosine_distance([1, 0], [0, 1]) == pytest.approx(1.0)
+    assert cosine_distance(np.zeros(3), np.zeros(3)) == 0.0
+    assert cosine_distance(np.zeros(3), a) == 1.0
+    assert not math.isnan(cosine_distance(np.zeros(40), np.zeros(40)))
+
+
+def test_yaw_whole_bin_shift_and_sign() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 1, 60)
+    # The candidate sees the query's bin i at bin i + 5: candidate = Rz(+30 deg) query.
+    assert math.degrees(estimate_yaw(a, np.roll(a, 5))) == pytest.approx(30.0, abs=1e-9)
+    assert math.degrees(estimate_yaw(a, np.roll(a, -5))) == pytest.approx(-30.0, abs=1e-9)
+    assert estimate_yaw(a, a) == pytest.approx(0.0, abs=1e-12)
+    assert math.degrees(estimate_yaw(a, np.roll(a, 30))) == pytest.approx(180.0)
+
+
+def test_yaw_of_zero_signature_is_zero_and_shapes_are_checked() -> None:
+    assert estimate_yaw(np.zeros(60), np.ones(60)) == 0.0
+    with pytest.raises(ValueError):
+        estimate_yaw(np.ones(60), np.ones(40))
+
+
+def test_yaw_convention_on_a_synthetic_scene() -> None:
+    # A lone wall seen at +x by the candidate; the query sensor is turned +40 deg, so it
+    # sees the wall at azimuth -40 deg, and p_candidate = Rz(+40 deg) p_query.
+    rng = np.random.default_rng(2)
+    wall = np.column_stack([np.full(3000, 20.0), rng.uniform(-3, 3, 3000),
+                            rng.uniform(-1.5, 0.5, 3000)])
+    cfg = SolidConfig(voxel_size=0.0)
+    cand = describe(wall, cfg)
+    query = describe(rotate(wall, math.radians(-40.0)), cfg)
+    assert math.degrees(estimate_yaw(query.a_solid, cand.a_solid)) == pytest.approx(40, abs=1.5)
+
+
+def _yaw_errors(data: Path, cfg: SolidConfig, yaws_deg: np.ndarray) -> np.ndarray:
+    errors = []
+    for frame in (313, 314, 315):
+        scan = read_pcd(data / 'kitti' / 'pcd' / f'000{frame}.pcd')
+        cand = describe(scan, cfg)
+        for yaw in np.radians(yaws_deg):
+            query = describe(rotate(scan, -yaw), cfg)  # query sensor turned by +yaw
+            errors.append(angle_error_deg(estimate_yaw(query.heading, cand.heading), yaw))
+    return np.array(errors)
+
+
+def test_heading_of_rotated_real_scans_is_sub_bin_accurate(shared_data: Path) -> None:
+    # 25 yaws over (-180, 180], none a multiple of the 6-degree bin.
+    yaws = np.linspace(-177.3, 178.1, 25)
+    assert not np.any(np.isclose(np.mod(yaws, 6.0), 0.0))
+    errors = _yaw_errors(shared_data, SolidConfig(), yaws)
+    assert errors.mean() < 1.0, errors
+    assert errors.max() < 3.0, errors
+
+
+@pytest.mark.parametrize('weight', ['count', 'range'])
+def test_heading_with_90_degree_fov(shared_data: Path, weight: str) -> None:
+    yaws = np.linspace(-29.3, 28.9, 13)
+    cfg = SolidConfig(fov_width_deg=90.0, heading_weight=weight)
+    errors = _yaw_errors(shared_data, cfg, yaws)
+    assert errors.mean() < 2.0, errors

@@ -1,0 +1,126 @@
+"""PointCloud2 decoding of every layout the node may meet, and rejection of bad messages."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from solid_ros.core.errors import CloudError
+from solid_ros.formats.pointcloud2 import FLOAT32, FLOAT64, cloud_to_xyz, encode_points
+
+RNG = np.random.default_rng(7)
+XYZ = RNG.normal(scale=20.0, size=(50, 3))
+
+
+def _field(name: str, offset: int, datatype: int) -> SimpleNamespace:
+    return SimpleNamespace(name=name, offset=offset, datatype=datatype, count=1)
+
+
+def _cloud(rec: np.ndarray, fields: list[SimpleNamespace], *, height: int = 1,
+           row_pad: int = 0, big: bool = False) -> SimpleNamespace:
+    """Duck-typed PointCloud2 from a structured array (rows of equal width)."""
+    step = rec.dtype.itemsize
+    width = rec.size // height
+    rows = rec.reshape(height, width).view(np.uint8).reshape(height, width * step)
+    data = np.concatenate([rows, np.zeros((height, row_pad), np.uint8)], axis=1)
+    return SimpleNamespace(height=height, width=width, point_step=step,
+                           row_step=width * step + row_pad, is_bigendian=big,
+                           fields=fields, data=data.reshape(-1).tobytes())
+
+
+@pytest.mark.parametrize('ftype,code', [('f4', FLOAT32), ('f8', FLOAT64)])
+def test_float_types_at_offsets_with_extra_fields_and_padding(ftype: str, code: int) -> None:
+    dt = np.dtype([('intensity', '<f4'), ('ring', '<u2'), ('x', '<' + ftype),
+                   ('y', '<' + ftype), ('z', '<' + ftype), ('pad', 'u1', 5)])
+    rec = np.zeros(len(XYZ), dtype=dt)
+    rec['x'], rec['y'], rec['z'] = XYZ.T
+    fields = [_field('intensity', 0, FLOAT32), _field('ring', 4, 4)] + [
+        _field(n, dt.fields[n][1], code) for n in 'xyz']
+    out = cloud_to_xyz(_cloud(rec, fields))
+    assert out.shape == XYZ.shape
+    np.testing.assert_allclose(out, XYZ.astype(ftype))
+
+
+def test_mixed_float_types_and_uneven_offsets() -> None:
+    dt = np.dtype([('z', '<f4'), ('x', '<f8'), ('gap', 'u1', 3), ('y', '<f8')])
+    rec = np.zeros(len(XYZ), dtype=dt)
+    rec['x'], rec['y'], rec['z'] = XYZ.T
+    fields = [_field('z', 0, FLOAT32), _field('x', 4, FLOAT64), _field('y', 15, FLOAT64)]
+    out = cloud_to_xyz(_cloud(rec, fields))
+    np.testing.assert_allclose(out, np.stack([XYZ[:, 0], XYZ[:, 1],
+                                              XYZ[:, 2].astype('f4')], axis=1))
+
+
+def test_organised_cloud_with_row_padding_and_nans() -> None:
+    pts = XYZ[:48].copy()
+    pts[5] = np.nan
+    dt = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('i', '<f4')])
+    rec = np.zeros(48, dtype=dt)
+    rec['x'], rec['y'], rec['z'] = pts.T
+    fields = [_field(n, 4 * i, FLOAT32) for i, n in enumerate('xyz')]
+    out = cloud_to_xyz(_cloud(rec, fields, height=6, row_pad=12))
+    assert out.shape == (48, 3)
+    assert np.isnan(out[5]).all()
+    np.testing.assert_allclose(np.delete(out, 5, 0), np.delete(pts, 5, 0).astype('f4'))
+
+
+def test_big_endian() -> None:
+    dt = np.dtype([('x', '>f8'), ('y', '>f8'), ('z', '>f8')])
+    rec = np.zeros(len(XYZ), dtype=dt)
+    rec['x'], rec['y'], rec['z'] = XYZ.T
+    fields = [_field(n, 8 * i, FLOAT64) for i, n in enumerate('xyz')]
+    out = cloud_to_xyz(_cloud(rec, fields, big=True))
+    np.testing.assert_array_equal(out, XYZ)
+    assert out.dtype.isnative
+
+
+def test_packed_float32_is_zero_copy() -> None:
+    lay = encode_points(np.concatenate([XYZ, np.ones((len(XYZ), 1))], axis=1))
+    msg = SimpleNamespace(height=1, width=lay.width, point_step=lay.point_step,
+                          row_step=lay.row_step, is_bigendian=False, fields=lay.fields,
+                          data=lay.data)
+    out = cloud_to_xyz(msg)
+    assert np.shares_memory(out, lay.data)
+    np.testing.assert_allclose(out, XYZ.astype('f4'))
+
+
+def _good() -> dict[str, Any]:
+    lay = encode_points(XYZ)
+    return dict(height=1, width=lay.width, point_step=lay.point_step, row_step=lay.row_step,
+                is_bigendian=False, fields=list(lay.fields), data=lay.data.tobytes())
+
+
+@pytest.mark.parametrize('change,match', [
+    (lambda m: m.update(data=m['data'][:-1]), 'bytes'),
+    (lambda m: m.update(fields=m['fields'][:2]), "'z'"),
+    (lambda m: m.update(fields=[_field('x', 0, 5)] + m['fields'][1:]), 'datatype'),
+    (lambda m: m.update(point_step=0), 'point_step'),
+    (lambda m: m.update(fields=m['fields'][:2] + [_field('z', 12, FLOAT32)]), 'exceeds'),
+    (lambda m: m.update(height=2, row_step=4), 'row_step'),
+])
+def test_invalid_messages_raise_cloud_error(change: Any, match: str) -> None:
+    msg = _good()
+    change(msg)
+    with pytest.raises(CloudError, match=match):
+        cloud_to_xyz(SimpleNamespace(**msg))
+
+
+def test_not_a_cloud_raises_cloud_error() -> None:
+    with pytest.raises(CloudError):
+        cloud_to_xyz(object())
+
+
+def test_rclpy_message_decodes() -> None:
+    sensor_msgs = pytest.importorskip('sensor_msgs.msg', reason='sensor_msgs not installed')
+    import array
+
+    lay = encode_points(XYZ)
+    msg = sensor_msgs.PointCloud2(height=1, width=lay.width, point_step=lay.point_step,
+                                  row_step=lay.row_step, is_dense=True)
+    msg.fields = [sensor_msgs.PointField(name=f.name, offset=f.offset, datatype=f.datatype,
+                                         count=1) for f in lay.fields]
+    msg.data = array.array('B', lay.data.tobytes())
+    np.testing.assert_allclose(cloud_to_xyz(msg), XYZ.astype('f4'))

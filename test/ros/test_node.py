@@ -1,0 +1,415 @@
+"""solid_node with real rclpy and Fast DDS: bag replay, bad clouds, runtime parameters, reload.
+
+The node runs in this process on an executor thread; a separate test node publishes clouds and
+odometry and subscribes to the outputs over DDS (no mocks). Every test gets its own rclpy
+context and the module a random ROS_DOMAIN_ID, so parallel test runs do not hear each other.
+"""
+
+from __future__ import annotations
+
+import array
+import os
+import random
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from project_paths import CONFIG_DIR  # noqa: E402
+from rcl_interfaces.msg import Parameter as ParameterMsg  # noqa: E402
+from rcl_interfaces.msg import ParameterType, ParameterValue  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy_msgs import make_cloud  # noqa: E402
+from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+from visualization_msgs.msg import MarkerArray  # noqa: E402
+
+from solid_ros.core.config import SolidConfig  # noqa: E402
+from solid_ros.core.detector import LoopDetector  # noqa: E402
+from solid_ros.formats.candidates import decode_candidates  # noqa: E402
+from solid_ros.formats.pointcloud2 import cloud_to_xyz  # noqa: E402
+from solid_ros.ros.node import SolidNode  # noqa: E402
+
+AVIA = CONFIG_DIR / 'avia.yaml'
+TIMEOUT = 120.0
+# Replays must not lose clouds: reliable QoS and queues longer than the bag.
+NO_DROP = [Parameter('qos_reliability', value='reliable'), Parameter('qos_depth', value=1000),
+           Parameter('queue_size', value=1000)]
+
+
+@pytest.fixture(scope='module', autouse=True)
+def domain_id() -> Iterator[None]:
+    old = os.environ.get('ROS_DOMAIN_ID')
+    os.environ['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
+    yield
+    if old is None:
+        os.environ.pop('ROS_DOMAIN_ID', None)
+    else:
+        os.environ['ROS_DOMAIN_ID'] = old
+
+
+# -- message helpers ---------------------------------------------------------------------------
+
+
+def from_rosbags_cloud(m: Any) -> PointCloud2:
+    """Copy a rosbags PointCloud2 into an rclpy message (all fields, data as is)."""
+    msg = PointCloud2()
+    msg.header.frame_id = m.header.frame_id
+    msg.header.stamp.sec, msg.header.stamp.nanosec = m.header.stamp.sec, m.header.stamp.nanosec
+    msg.height, msg.width = m.height, m.width
+    msg.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
+                  for f in m.fields]
+    msg.is_bigendian, msg.is_dense = bool(m.is_bigendian), bool(m.is_dense)
+    msg.point_step, msg.row_step = m.point_step, m.row_step
+    msg.data = array.array('B', np.asarray(m.data, dtype=np.uint8).tobytes())
+    return msg
+
+
+def from_rosbags_odom(m: Any) -> Odometry:
+    msg = Odometry()
+    msg.header.frame_id = m.header.frame_id
+    msg.header.stamp.sec, msg.header.stamp.nanosec = m.header.stamp.sec, m.header.stamp.nanosec
+    msg.child_frame_id = m.child_frame_id
+    p, q = m.pose.pose.position, m.pose.pose.orientation
+    msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = p.x, p.y, p.z
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = q.x, q.y, q.z, q.w
+    return msg
+
+
+def read_bag(path: Path, points_topic: str = '/points',
+             odom_topic: str | None = '/odom_slam') -> list[tuple[str, Any]]:
+    """Messages of a bag in log order as ('points' | 'odom', rclpy message)."""
+    from rosbags.highlevel import AnyReader
+
+    out: list[tuple[str, Any]] = []
+    with AnyReader([path]) as reader:
+        topics = {points_topic} | ({odom_topic} if odom_topic else set())
+        conns = [c for c in reader.connections if c.topic in topics]
+        for conn, _, raw in reader.messages(connections=conns):
+            m = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == points_topic:
+                out.append(('points', from_rosbags_cloud(m)))
+            else:
+                out.append(('odom', from_rosbags_odom(m)))
+    return out
+
+
+def stamp_of(msg: Any) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def offline(messages: list[tuple[str, Any]], config: SolidConfig,
+            detector: LoopDetector | None = None) -> list[tuple[int, int, int, int, int]]:
+    """What the core finds for the same clouds (poses paired by exact stamp)."""
+    from solid_ros.formats.poses import odometry_to_pose
+
+    det = detector or LoopDetector(config)
+    poses = {stamp_of(m): odometry_to_pose(m) for kind, m in messages if kind == 'odom'}
+    found = []
+    for kind, m in messages:
+        if kind != 'points':
+            continue
+        stamp = stamp_of(m)
+        for c in det.process(cloud_to_xyz(m), stamp, pose=poses.get(stamp)):
+            found.append((c.query_index, c.match_index, c.query_stamp_ns, c.match_stamp_ns,
+                          c.match_session))
+    return found
+
+
+def key(c: dict[str, Any]) -> tuple[int, int, int, int, int]:
+    return (int(c['query_index']), int(c['match_index']), int(c['query_stamp_ns']),
+            int(c['match_stamp_ns']), int(c['match_session']))
+
+
+# -- harness ------------------------------------------------------------------------------------
+
+
+class Harness:
+    """The node under test plus a client node, spun by one executor thread."""
+
+    def __init__(self, ctx: Context, overrides: list[Parameter], params_file: Path | None,
+                 remap: list[str] | None = None) -> None:
+        cli = ['--ros-args']
+        if params_file is not None:
+            cli += ['--params-file', str(params_file)]
+        for r in remap or []:
+            cli += ['-r', r]
+        self.node = SolidNode(context=ctx, cli_args=cli, parameter_overrides=overrides)
+        self.client = Node('solid_test_client', context=ctx)
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_points = self.client.create_publisher(PointCloud2, '/points', qos)
+        self.pub_odom = self.client.create_publisher(Odometry, '/odom_slam', qos)
+        self.candidates: list[dict[str, Any]] = []
+        self.markers: list[MarkerArray] = []
+        self.diagnostics: list[DiagnosticArray] = []
+        self.client.create_subscription(
+            Float64MultiArray, '/solid_node/loop_candidates',
+            lambda m: self.candidates.extend(decode_candidates(m)), qos)
+        self.client.create_subscription(MarkerArray, '/solid_node/loop_markers',
+                                        self.markers.append, 10)
+        self.client.create_subscription(DiagnosticArray, '/diagnostics',
+                                        self.diagnostics.append, 10)
+        self.executor = MultiThreadedExecutor(num_threads=3, context=ctx)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.client)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        self.wait_for(lambda: self.pub_points.get_subscription_count() > 0, 'points matched')
+
+    def wait_for(self, pred: Callable[[], bool], what: str, timeout: float = TIMEOUT) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(f'timed out waiting for {what}')
+            time.sleep(0.02)
+
+    def replay(self, messages: list[tuple[str, Any]], bad: dict[int, PointCloud2] | None = None
+               ) -> None:
+        """Publish in order; ``bad[i]`` is published before the i-th cloud."""
+        sent = self.node.stats.received
+        loops0, rows0 = self.node.stats.loops, len(self.candidates)
+        n = 0
+        for kind, msg in messages:
+            if kind == 'odom':
+                self.pub_odom.publish(msg)
+                continue
+            if bad and n in bad:
+                self.pub_points.publish(bad[n])
+                sent += 1
+            self.pub_points.publish(msg)
+            sent += 1
+            n += 1
+            # Pace the publisher so DDS history never overflows on a busy machine.
+            self.wait_for(lambda s=sent: self.node.stats.received >= s - 50, 'delivery')
+        self.wait_for(lambda: self.node.stats.received >= sent, 'all clouds received')
+        assert self.node.wait_idle(TIMEOUT)
+        # Every candidate row the node published must arrive (a fixed sleep raced under load).
+        self.wait_for(lambda: len(self.candidates) - rows0 >= self.node.stats.loops - loops0,
+                      'all candidate messages')
+
+    def call(self, service: str) -> Trigger.Response:
+        cli = self.client.create_client(Trigger, service)
+        assert cli.wait_for_service(timeout_sec=10.0)
+        fut = cli.call_async(Trigger.Request())
+        self.wait_for(fut.done, service)
+        return fut.result()
+
+    def set_param(self, name: str, value: float) -> Any:
+        cli = self.client.create_client(SetParameters, '/solid_node/set_parameters')
+        assert cli.wait_for_service(timeout_sec=10.0)
+        req = SetParameters.Request(parameters=[ParameterMsg(
+            name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
+                                            double_value=value))])
+        fut = cli.call_async(req)
+        self.wait_for(fut.done, 'set_parameters')
+        return fut.result().results[0]
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.client.destroy_node()
+        self.thread.join(timeout=10.0)
+
+
+@pytest.fixture()
+def harness(context: Context) -> Iterator[Callable[..., Harness]]:
+    made: list[Harness] = []
+
+    def make(overrides: list[Parameter] | None = None, params_file: Path | None = AVIA,
+             remap: list[str] | None = None) -> Harness:
+        h = Harness(context, NO_DROP + (overrides or []), params_file,
+                    remap if remap is not None else ['odom:=/odom_slam'])
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.close()
+
+
+@pytest.fixture(scope='module')
+def hku1(request: pytest.FixtureRequest) -> list[tuple[str, Any]]:
+    shared = request.getfixturevalue('shared_data')
+    return read_bag(shared / 'hku1' / 'bag')
+
+
+def _revisits(cands: list[tuple[int, int, int, int, int]]) -> list[tuple[int, int]]:
+    # The sequence returns to its start: keyframes ~274-313 revisit ~19-34.
+    return [(q, m) for q, m, *_ in cands if q >= 260 and 5 <= m <= 50]
+
+
+# -- tests ---------------------------------------------------------------------------------------
+
+
+def _odom_first(messages: list[tuple[str, Any]]) -> list[tuple[str, Any]]:
+    # Odometry of a stamp before its cloud, so pairing never depends on machine load.
+    return sorted(messages, key=lambda km: (stamp_of(km[1]), km[0] == 'points'))
+
+
+def test_hku1_bag_replay_finds_the_revisit(harness: Callable[..., Harness],
+                                           hku1: list[tuple[str, Any]]) -> None:
+    h = harness()
+    h.replay(_odom_first(hku1))
+    assert h.node.stats.without_odom == 0
+    got = [key(c) for c in h.candidates]
+    want = offline(hku1, SolidConfig.from_yaml(AVIA))
+    assert got == want
+    assert _revisits(got), got
+    assert h.node.stats.processed == sum(1 for k, _ in hku1 if k == 'points')
+    assert h.node.stats.skipped == 0 and h.node.stats.rejected == 0
+    # Odometry was paired, so the loop edges were drawn between keyframe positions.
+    h.wait_for(lambda: bool(h.markers)
+               and len(h.markers[-1].markers[0].points) == 2 * len(got), 'all loop edges', 10.0)
+    assert h.markers[-1].markers[0].header.frame_id == 'map'
+
+    def latest() -> dict[str, str]:
+        return {kv.key: kv.value for d in h.diagnostics[-1:] for kv in d.status[0].values}
+
+    # Diagnostics are periodic: wait for one issued after the last cloud.
+    h.wait_for(lambda: latest().get('clouds_processed') == str(h.node.stats.processed),
+               'up-to-date diagnostics')
+    values = latest()
+    assert int(values['database_size']) == h.node.stats.processed
+    assert float(values['processing_ms_p50']) > 0.0
+
+
+def test_bag_written_in_tmp_path(harness: Callable[..., Harness], hku1: list[tuple[str, Any]],
+                                 tmp_path: Path) -> None:
+    from solid_ros.formats.bags import write_cloud_bag
+    from solid_ros.formats.pointcloud2 import FLOAT64, CloudLayout, Field
+
+    def padded_f8(m: PointCloud2) -> tuple[CloudLayout, int]:
+        # Rewrite as float64 x y z with padding, to exercise another layout end to end.
+        xyz = np.asarray(cloud_to_xyz(m), dtype='<f8')
+        rec = np.zeros(len(xyz), dtype=[('x', '<f8'), ('y', '<f8'), ('z', '<f8'),
+                                        ('pad', 'u1', 8)])
+        rec['x'], rec['y'], rec['z'] = xyz.T
+        layout = CloudLayout(fields=tuple(Field(n, 8 * i, FLOAT64) for i, n in enumerate('xyz')),
+                             width=len(xyz), point_step=32, row_step=32 * len(xyz),
+                             data=rec.view(np.uint8).reshape(-1))
+        return layout, stamp_of(m)
+
+    bag = tmp_path / 'replay_bag'
+    clouds = [m for k, m in hku1 if k == 'points']
+    write_cloud_bag(bag, [padded_f8(m) for m in clouds], 'sqlite3', points_topic='/lidar',
+                    odom_topic=None)
+    messages = read_bag(bag, points_topic='/lidar', odom_topic=None)
+    assert len(messages) == len(clouds)
+    h = harness([Parameter('use_odom', value=False)], remap=['points:=/points'])
+    h.replay(messages)
+    got = [key(c) for c in h.candidates]
+    assert got == offline(messages, SolidConfig.from_yaml(AVIA))
+    assert _revisits(got)
+
+
+def _bad_clouds(good: PointCloud2) -> list[PointCloud2]:
+    short = make_cloud(np.ones((10, 3)), stamp_of(good))
+    short.data = short.data[:-4]
+    no_z = make_cloud(np.ones((10, 3)), stamp_of(good))
+    no_z.fields = no_z.fields[:2]
+    int_x = make_cloud(np.ones((10, 3)), stamp_of(good))
+    int_x.fields[0].datatype = PointField.INT32
+    zero_step = make_cloud(np.ones((10, 3)), stamp_of(good))
+    zero_step.point_step = 0
+    empty = make_cloud(np.zeros((0, 3)), stamp_of(good))
+    return [short, no_z, int_x, zero_step, empty]
+
+
+def test_malformed_clouds_leave_results_unchanged(harness: Callable[..., Harness],
+                                                  hku1: list[tuple[str, Any]]) -> None:
+    clouds = [m for k, m in hku1 if k == 'points']
+    bad_list = _bad_clouds(clouds[0])
+    bad = {i: bad_list[(i // 20) % len(bad_list)] for i in range(3, len(clouds), 20)}
+    h = harness()
+    h.replay(hku1, bad=bad)
+    got = [key(c) for c in h.candidates]
+    assert got == offline(hku1, SolidConfig.from_yaml(AVIA))
+    assert h.node.stats.rejected == len(bad)
+    assert h.node.stats.processed == len(clouds)
+    assert h.node.stats.failed == 0
+
+
+def _scene(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform([-40, -40, -2], [40, 40, 6], size=(6000, 3))
+    return pts[np.hypot(pts[:, 0], pts[:, 1]) > 4.0]
+
+
+def test_runtime_threshold_change(harness: Callable[..., Harness]) -> None:
+    h = harness([Parameter('distance_threshold', value=0.0),
+                 Parameter('exclude_recent_frames', value=0)], params_file=None)
+    scene = _scene(1)
+    h.replay([('points', make_cloud(scene, 10**9)), ('points', make_cloud(scene, 2 * 10**9))])
+    assert h.candidates == []  # nothing is below a threshold of 0
+    result = h.set_param('distance_threshold', 0.5)
+    assert result.successful, result.reason
+    assert h.node.solid_config.distance_threshold == 0.5
+    h.replay([('points', make_cloud(scene, 3 * 10**9))])
+    assert [c['match_index'] for c in h.candidates] == [0]
+    assert h.candidates[0]['distance'] < 1e-9
+    assert h.candidates[0]['query_stamp_ns'] == 3 * 10**9
+    rejected = h.set_param('distance_threshold', 7.5)
+    assert not rejected.successful
+    assert 'distance_threshold' in rejected.reason and '2.0' in rejected.reason
+    read_only = h.set_param('max_range', 50.0)
+    assert not read_only.successful and 'max_range' in read_only.reason
+    assert h.node.solid_config.distance_threshold == 0.5
+    assert h.node.get_parameter('distance_threshold').value == 0.5
+
+
+def test_save_restart_load_finds_first_session(harness: Callable[..., Harness],
+                                               hku1: list[tuple[str, Any]],
+                                               tmp_path: Path) -> None:
+    db = tmp_path / 'sub' / 'hku1_first.npz'
+    stamps = [stamp_of(m) for k, m in hku1 if k == 'points']
+    split = stamps[150]
+    first = [(k, m) for k, m in hku1 if stamp_of(m) < split]
+    second = [(k, m) for k, m in hku1 if stamp_of(m) >= stamps[250]]
+    h1 = harness([Parameter('database_save_path', value=str(db))])
+    h1.replay(first)
+    saved = h1.call('/solid_node/save_database')
+    assert saved.success, saved.message
+    assert db.is_file()
+    h1.close()
+
+    h2 = harness([Parameter('database_load_path', value=str(db)),
+                  Parameter('session_id', value=1)])
+    assert h2.node.node_config.database_load_path == str(db)
+    h2.replay(second)
+    got = h2.candidates
+    from_first = [c for c in got if c['match_session'] == 0]
+    assert from_first, got
+    assert all(c['match_stamp_ns'] < split for c in from_first)
+    assert any(5 <= c['match_index'] <= 50 for c in from_first)
+    cfg = SolidConfig.from_yaml(AVIA).replace(session_id=1)
+    assert [key(c) for c in got] == offline(second, cfg, LoopDetector.load(db, cfg))
+
+    reset = h2.call('/solid_node/reset')
+    assert reset.success
+    assert h2.node.wait_idle(10.0)
+    h2.candidates.clear()
+    h2.replay(second[:20])
+    assert h2.candidates == []  # database cleared: nothing old to match
+
+
+def test_bad_load_path_refuses_to_start(context: Context, tmp_path: Path) -> None:
+    from solid_ros.core.errors import SolidError
+
+    with pytest.raises(SolidError):
+        SolidNode(context=context, parameter_overrides=[
+            Parameter('database_load_path', value=str(tmp_path / 'missing.npz'))])
