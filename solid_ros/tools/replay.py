@@ -27,7 +27,7 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.config import NodeConfig, SolidConfig, load_yaml_parameters
+from solid_ros.core.config import NodeConfig, SolidConfig, check_parameters, load_parameter_file
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import ConfigError, SolidError
 from solid_ros.formats.bags import Bag, select_cloud_topic, select_odom_topic
@@ -114,14 +114,17 @@ def load_config(params: str | Path | None, node_name: str = 'solid_node',
                 overrides: dict[str, Any] | None = None) -> tuple[SolidConfig, NodeConfig]:
     """Read the detector and node settings from a parameter file, as the node does.
 
+    The file passes the node's rule (:func:`~solid_ros.core.config.load_parameter_file`), and
+    ``overrides`` (``--set``) the rule of the node's ``-p`` overrides.
+
     Raises:
         ConfigError: unreadable file, unknown key or invalid value (named).
     """
     values: dict[str, Any] = {}
     if params is not None:
-        values = load_yaml_parameters(params, node_name)
+        values = load_parameter_file(params, node_name)
+    check_parameters(overrides or {}, '--set')
     values.update(overrides or {})
-    SolidConfig.from_dict(values)  # strict: unknown keys are errors, as in the node
     return (SolidConfig.from_dict(values, strict=False),
             NodeConfig.from_dict(values, strict=False))
 
