@@ -186,3 +186,16 @@ def test_hku1_revisit_is_found(shared_data: Path) -> None:
     assert correct, f'no correct candidate in the revisit: {loop}'
     assert all(c.match_index < 60 for c in correct)
     assert len(correct) >= 0.9 * len(loop)
+
+
+@pytest.mark.parametrize('stamp', [2**63, -(2**63) - 1, 10**30, float('nan'), float('inf'),
+                                   'abc', None])
+def test_stamps_outside_int64_are_solid_errors(stamp: object) -> None:
+    det = LoopDetector(SolidConfig().replace(exclude_recent_sec=1e9, exclude_recent_frames=0))
+    det.process(place(0), 2**63 - 1)
+    det.process(place(0), -(2**63))  # both ends of int64 are fine
+    with pytest.raises(SolidError, match='stamp'):
+        det.process(place(1), stamp)  # type: ignore[arg-type]
+    with pytest.raises(SolidError, match='stamp'):
+        det.process_descriptor(det.last_descriptor, stamp)  # type: ignore[arg-type]
+    assert det.database.size == 2
