@@ -266,7 +266,8 @@ class NodeConfig(_Schema):
                                    low=0.0, high=10.0)
     queue_size: int = _p(2, 'Clouds waiting for processing; the oldest is dropped beyond '
                          'this', low=1, high=1000, read_only=True)
-    database_save_path: str = _p('', 'File written by ~/save_database (empty = disabled)')
+    database_save_path: str = _p('', 'File written by ~/save_database (empty = disabled; never '
+                                 'replaces a non-database)', read_only=True)
     database_load_path: str = _p('', 'Saved database loaded at start (empty = none)',
                                  read_only=True)
     diagnostics_period_sec: float = _p(1.0, 'Period of /diagnostics messages', low=0.05,

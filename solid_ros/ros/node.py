@@ -42,7 +42,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from solid_ros.core.config import NodeConfig, SolidConfig
 from solid_ros.core.detector import LoopDetector
-from solid_ros.core.errors import CloudError, ConfigError, SolidError
+from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
+from solid_ros.core.persistence import check_save_target, remove_stale_temporaries
 from solid_ros.formats.candidates import layout_dims, to_rows
 from solid_ros.formats.pointcloud2 import cloud_to_xyz
 from solid_ros.formats.poses import PoseError, odometry_to_pose
@@ -94,6 +95,7 @@ class SolidNode(Node):
         except BaseException:
             super().destroy_node()
             raise
+        self._prepare_save_path()
         self.stats = NodeStats()
         self._times_ms: deque[float] = deque(maxlen=1000)
         self._det_lock = threading.Lock()
@@ -154,6 +156,18 @@ class SolidNode(Node):
             self.get_logger().info(f'loaded database {path}')
             return det
         return LoopDetector(self._solid)
+
+    def _prepare_save_path(self) -> None:
+        """Remove temporaries a killed save left; warn now when saving would be refused."""
+        if not self._cfg.database_save_path:
+            return
+        target = Path(self._cfg.database_save_path).expanduser()
+        for stale in remove_stale_temporaries(target):
+            self.get_logger().info(f'removed {stale}, left by an interrupted save')
+        try:
+            check_save_target(target)
+        except DatabaseError as err:
+            self.get_logger().warning(f'~/save_database will refuse: {err}')
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         try:

@@ -30,6 +30,7 @@ import numpy.typing as npt
 from solid_ros.core.config import NodeConfig, SolidConfig, check_parameters, load_parameter_file
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import ConfigError, SolidError
+from solid_ros.core.persistence import check_save_target
 from solid_ros.formats.bags import Bag, select_cloud_topic, select_odom_topic
 from solid_ros.formats.poses import PoseError, PoseTrack, associate, load_reference
 from solid_ros.tools.evaluation import Evaluation, evaluate, sweep_table
@@ -173,6 +174,8 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
     if not radius > 0.0:
         raise ConfigError(f'radius must be positive, got {radius}')
     file_track = load_reference(poses, times) if poses is not None else None
+    if save_db is not None:
+        check_save_target(save_db)  # refuse before the run, not after it
     detector = LoopDetector.load(load_db, cfg) if load_db is not None else LoopDetector(cfg)
     t_start = time.perf_counter()
     with Bag(bag) as b:
