@@ -287,8 +287,8 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
                     'scans_per_sec': len(stamps) / wall if wall > 0 else None,
                     'read_decode_ms': _percentiles(read_ms),
                     'detect_ms': _percentiles(detect_ms)},
-        'database': {'size': db.size, 'bytes': db.nbytes,
-                     'bytes_per_scan': db.bytes_per_scan,
+        'database': {'size': db.size, 'bytes': db.stored_bytes,
+                     'allocated_bytes': db.nbytes, 'bytes_per_scan': db.bytes_per_scan,
                      'peak_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0},
         'metrics': None,
         'threshold_sweep': None,
@@ -507,7 +507,8 @@ def summary_lines(r: ReplayResult) -> list[str]:
         f'  detect ms         p50 {_fmt(det["p50"], ".2f")}  p90 {_fmt(det["p90"], ".2f")}  '
         f'p99 {_fmt(det["p99"], ".2f")}  max {_fmt(det["max"], ".2f")}',
         f'  database          {rep["database"]["size"]} scans, '
-        f'{rep["database"]["bytes"] / 1e6:.2f} MB',
+        f'{rep["database"]["bytes"] / 1e6:.2f} MB ({rep["database"]["bytes_per_scan"]} bytes '
+        'per scan)',
     ]
     m = rep['metrics']
     if m is None:
