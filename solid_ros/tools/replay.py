@@ -171,8 +171,11 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
     feed_odom = ncfg.use_odom if use_odom is None else use_odom
     if times is not None and poses is None:
         raise PoseError('--times needs --poses')
-    if not radius > 0.0:
-        raise ConfigError(f'radius must be positive, got {radius}')
+    if not 0.0 < radius < math.inf:
+        raise ConfigError(f'--radius must be a positive number of metres, got {radius}')
+    if max_heading_deg is not None and not 0.0 < max_heading_deg <= 180.0:
+        raise ConfigError(f'--max-heading-deg must be in (0, 180] degrees, got '
+                          f'{max_heading_deg}')
     file_track = load_reference(poses, times) if poses is not None else None
     if save_db is not None:
         check_save_target(save_db)  # refuse before the run, not after it
@@ -416,6 +419,20 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f'{self.prog}: error: {message} (see --help)\n')
 
 
+def _radius(text: str) -> float:
+    value = float(text)
+    if not 0.0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f'must be a positive number of metres, got {text!r}')
+    return value
+
+
+def _heading(text: str) -> float:
+    value = float(text)
+    if not 0.0 < value <= 180.0:
+        raise argparse.ArgumentTypeError(f'must be in (0, 180] degrees, got {text!r}')
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (``solid_replay --help``)."""
     p = _Parser(
@@ -450,9 +467,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='reference poses: KITTI 3x4 (one per scan, or per --times stamp) or TUM')
     p.add_argument('--times', metavar='FILE',
                    help='stamps in seconds, one per line, for a KITTI --poses file')
-    p.add_argument('--radius', type=float, default=5.0, metavar='M',
+    p.add_argument('--radius', type=_radius, default=5.0, metavar='M',
                    help='true-loop distance in metres (default: %(default)s)')
-    p.add_argument('--max-heading-deg', type=float, metavar='DEG',
+    p.add_argument('--max-heading-deg', type=_heading, metavar='DEG',
                    help='also require a heading difference below this for a true loop')
     p.add_argument('--out', metavar='DIR',
                    help='write candidates.csv, report.json and PNG plots here')

@@ -238,6 +238,21 @@ def _bad_inputs(tmp_path: Path, bags: dict[str, Path]) -> dict[str, tuple[list[s
     times.write_text('1.0\n2.0\n')
     params = tmp_path / 'bad.yaml'
     params.write_text('solid_node:\n  ros__parameters:\n    num_range: -3\n')
+    binary = tmp_path / 'binary.yaml'
+    binary.write_bytes(bytes(range(256)))
+    integer = tmp_path / 'integer.yaml'
+    integer.write_text('solid_node:\n  ros__parameters:\n    fov_width_deg: 90\n')
+    n = len(ROUTE)
+    poses16 = tmp_path / 'poses16.txt'
+    poses16.write_text('1 0 0 0 0 1 0 0 0 0 1 0\n' * n)
+    zero_rot = tmp_path / 'zero_rot.txt'
+    zero_rot.write_text('1 0 0 0 0 1 0 0 0 0 1 0\n' * (n - 1) + '0 0 0 1 0 0 0 2 0 0 0 3\n')
+    repeated = tmp_path / 'repeated.txt'
+    repeated.write_text(''.join(f'{t}.5\n' for t in [0, 1, 2, 2] + list(range(4, n))))
+    back = tmp_path / 'back.txt'
+    back.write_text(''.join(f'{t}.5\n' for t in [0, 2, 1] + list(range(3, n))))
+    tum = tmp_path / 'tum.txt'
+    tum.write_text(''.join(f'{t} 0 0 0 0 0 0 1\n' for t in [3, 2] + list(range(4, n + 2))))
     b = str(bags['mcap'])
     return {
         'missing path': ([str(tmp_path / 'nope')], 'no such file or directory'),
@@ -255,6 +270,16 @@ def _bad_inputs(tmp_path: Path, bags: dict[str, Path]) -> dict[str, tuple[list[s
         'bad --set': ([b, '--set', 'distance_threshold=abc'], 'distance_threshold'),
         'unknown --set': ([b, '--set', 'nope=1'], "unknown parameter 'nope'"),
         'bad database': ([b, '--load-db', str(notbag)], 'notes.txt'),
+        'database over a text file': ([b, '--save-db', str(notbag)],
+                                      'notes.txt exists and is not a solid_ros database'),
+        'binary params': ([b, '--params', str(binary)], 'is not UTF-8 text'),
+        'integer for float': ([b, '--params', str(integer)], 'write 90.0'),
+        'repeated times': ([b, '--poses', str(poses16), '--times', str(repeated)],
+                           'repeats the previous one'),
+        'times going back': ([b, '--poses', str(poses16), '--times', str(back)],
+                             'is before the previous one'),
+        'zero rotation': ([b, '--poses', str(zero_rot)], 'not a rotation matrix'),
+        'TUM stamps going back': ([b, '--poses', str(tum)], 'is before the previous one'),
     }
 
 
@@ -268,12 +293,15 @@ def test_bad_input_gives_one_line_error(tmp_path: Path, bags: dict[str, Path],
         assert len(lines) == 1 and lines[0].startswith('solid_replay: error: '), (name, err)
         assert expect in lines[0], (name, lines[0])
         assert 'Traceback' not in err and out == ''
+    assert (tmp_path / 'notes.txt').read_text() == 'hello'  # never replaced by --save-db
 
 
 def test_bad_command_line_exits_2(capsys: pytest.CaptureFixture[str],
                                   bags: dict[str, Path]) -> None:
-    for argv in ([], [str(bags['mcap']), '--times', 't.txt'], [str(bags['mcap']), '--radius',
-                                                               'far']):
+    b = str(bags['mcap'])
+    for argv in ([], [b, '--times', 't.txt'], [b, '--radius', 'far'], [b, '--radius', 'inf'],
+                 [b, '--radius', '-1'], [b, '--max-heading-deg', 'nan'],
+                 [b, '--max-heading-deg', '-5'], [b, '--max-heading-deg', '0']):
         with pytest.raises(SystemExit) as exc:
             main(argv)
         assert exc.value.code == 2
