@@ -275,6 +275,7 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
         'versions': _versions(),
         'bag': str(bag),
         'format': 'ros1' if b.is_ros1 else 'ros2',
+        'integrity': b.integrity,
         'topic': cloud_topic,
         'odom_topic': odom_name,
         'odometry_fed_to_detector': bool(feed_odom and odom_track is not None),
@@ -516,6 +517,7 @@ def summary_lines(r: ReplayResult) -> list[str]:
     lines = [
         f'{PROG} summary',
         f'  bag               {r.bag} ({rep["format"]}, {r.topic})',
+        f'  integrity         {rep["integrity"]}',
         f'  scans             {r.messages} read, {r.skipped} skipped, {r.keyframes} keyframes',
         f'  loops accepted    {len(r.candidates)} (distance_threshold '
         f'{r.config.distance_threshold})',

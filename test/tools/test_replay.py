@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -230,6 +231,12 @@ def _bad_inputs(tmp_path: Path, bags: dict[str, Path]) -> dict[str, tuple[list[s
     (trunc / 'metadata.yaml').write_bytes((src / 'metadata.yaml').read_bytes())
     data = (src / 'mcap.mcap').read_bytes()
     (trunc / 'mcap.mcap').write_bytes(data[:len(data) // 3])
+    damaged, flipped = tmp_path / 'damaged', tmp_path / 'flipped'
+    for bag, pos, blob in ((damaged, len(data) // 2, os.urandom(64)),
+                           (flipped, len(data) // 3, bytes([data[len(data) // 3] ^ 4]))):
+        bag.mkdir()
+        (bag / 'metadata.yaml').write_bytes((src / 'metadata.yaml').read_bytes())
+        (bag / 'mcap.mcap').write_bytes(data[:pos] + blob + data[pos + len(blob):])
     ros1 = tmp_path / 'cut.bag'
     ros1.write_bytes(bags['ros1'].read_bytes()[:5000])
     poses = tmp_path / 'poses.txt'
@@ -257,7 +264,9 @@ def _bad_inputs(tmp_path: Path, bags: dict[str, Path]) -> dict[str, tuple[list[s
     return {
         'missing path': ([str(tmp_path / 'nope')], 'no such file or directory'),
         'not a bag': ([str(notbag)], 'not a bag'),
-        'truncated mcap': ([str(trunc)], 'cannot open bag'),
+        'truncated mcap': ([str(trunc)], 'truncated MCAP file'),
+        'overwritten bytes in a chunk': ([str(damaged)], 'fails its CRC check'),
+        'one bit flipped': ([str(flipped)], 'fails its CRC check'),
         'truncated ros1': ([str(ros1)], 'cut.bag'),
         'topic absent': ([b, '--topic', '/lidar'], 'topic /lidar not in bag'),
         'wrong type': ([b, '--topic', '/odom'], 'has type nav_msgs/msg/Odometry'),
