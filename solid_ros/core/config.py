@@ -312,7 +312,9 @@ def load_yaml_parameters(path: str | Path, node_name: str = 'solid_node') -> dic
                           f'offset {err.start} is not UTF-8 text') from err
     try:
         doc = yaml.safe_load(text)
-    except (yaml.YAMLError, ValueError, TypeError, OverflowError, RecursionError) as err:
+    except RecursionError as err:
+        raise ConfigError(f'{path}: not valid YAML: nested too deeply') from err
+    except (yaml.YAMLError, ValueError, TypeError, OverflowError) as err:
         # PyYAML raises more than YAMLError for odd scalars (dates) and deep nesting.
         where = ' '.join(str(err).replace(' in "<unicode string>",', '').split())
         raise ConfigError(f'{path}: not valid YAML: {_shorten(where)}') from err

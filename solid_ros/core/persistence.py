@@ -54,7 +54,8 @@ FORMAT = 'solid_ros.core.database'
 VERSION = 1
 
 _READ_ERRORS = (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile,
-                zlib.error, UnicodeDecodeError, RecursionError, OverflowError, MemoryError)
+                zlib.error, UnicodeDecodeError, RecursionError, OverflowError, MemoryError,
+                NotImplementedError)  # zipfile: unknown compression or 'zip file version'
 # The metadata is a few settings and session ids; an .npy header is a short dict literal.
 _MAX_META_BYTES = 1 << 20
 _MAX_NPY_HEADER = 10_000
@@ -380,7 +381,10 @@ def _read_meta(zf: zipfile.ZipFile, headers: dict[str, NpyHeader], p: Path) -> d
     try:
         meta = json.loads(_read_array(zf, h).tobytes().decode('utf-8'),
                           parse_constant=no_constants)
-    except (ValueError, RecursionError) as err:  # JSONDecodeError, UnicodeDecodeError
+    except RecursionError as err:
+        raise DatabaseError(f'{p} is not a solid_ros database (its "meta" entry is not valid '
+                            'JSON: nested too deeply)') from err
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError, constants
         raise DatabaseError(f'{p} is not a solid_ros database (its "meta" entry is not valid '
                             f'JSON: {_short(str(err) or type(err).__name__)})') from err
     if not isinstance(meta, dict) or meta.get('format') != FORMAT:
