@@ -35,7 +35,7 @@ from project_paths import CONFIG_DIR
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
-from solid_ros.core.persistence import check_save_target, save_database
+from solid_ros.core.persistence import FORMAT, check_save_target, save_database
 from solid_ros.formats.bags import write_cloud_bag
 from solid_ros.formats.pointcloud2 import FLOAT32, FLOAT64, cloud_to_xyz
 from solid_ros.ros.cli import check_parameter_files, scan_arguments
@@ -454,8 +454,8 @@ def test_fuzz_through_the_executables(tmp_path: Path, sources: dict[str, Path]) 
     params = tmp_path / 'garbage.yaml'
     params.write_bytes(rng.randbytes(500) + b'\xff')
     crafted = tmp_path / 'crafted.npz'
-    crafted.write_bytes(_zip({'meta.npy': _npy_blob(np.frombuffer(
-        b'{"format": "solid_ros.core.database", "version": 1, "count": Infinity}', np.uint8))}))
+    meta = json.dumps({'format': FORMAT, 'version': 1})[:-1] + ', "count": Infinity}'
+    crafted.write_bytes(_zip({'meta.npy': _npy_blob(np.frombuffer(meta.encode(), np.uint8))}))
     damaged = tmp_path / 'damaged'
     damaged.mkdir()
     for p in sources['mcap'].iterdir():

@@ -24,6 +24,7 @@ from solid_ros.core.database import DescriptorDatabase
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.errors import DatabaseError
 from solid_ros.core.persistence import (
+    FORMAT,
     check_save_target,
     is_database,
     load_database,
@@ -182,7 +183,7 @@ def _members(db_path: Path) -> dict[str, bytes]:
 
 
 def _meta(**changes: object) -> bytes:
-    meta = {'format': 'solid_ros.core.database', 'version': 1, 'count': 6, 'num_range': 40,
+    meta = {'format': FORMAT, 'version': 1, 'count': 6, 'num_range': 40,
             'num_angle': 60, 'shape_params': SolidConfig().shape_params(), 'sessions': [0]}
     meta.update(changes)
     return _npy(np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8))
@@ -192,7 +193,7 @@ def test_crafted_metadata_is_refused(tmp_path: Path) -> None:
     good = _members(save_database(_filled(6), tmp_path / 'db.npz'))
     cases = {
         'infinity': (good | {'meta.npy': _npy(np.frombuffer(
-            json.dumps({'format': 'solid_ros.core.database', 'version': 1,
+            json.dumps({'format': FORMAT, 'version': 1,
                         'count': float('inf')}).encode(), np.uint8))}, 'Infinity'),
         'nested': (good | {'meta.npy': _npy(np.frombuffer(b'[' * 100_000 + b']' * 100_000,
                                                           np.uint8))}, 'not valid JSON'),
