@@ -14,8 +14,8 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import PoseError, SolidError
 
-__all__ = ['matrix_to_quaternion', 'pose_to_vector', 'quaternion_to_matrix', 'relative_yaw',
-           'rot_z', 'rotation_deg', 'yaw_of']
+__all__ = ['matrix_to_quaternion', 'matrix_to_vector', 'pose_to_vector', 'quaternion_to_matrix',
+           'relative_yaw', 'rot_z', 'rotation_deg', 'rpy_matrix', 'yaw_of']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -52,6 +52,22 @@ def matrix_to_quaternion(rotation: npt.ArrayLike) -> tuple[float, float, float, 
     if q[3] < 0:
         q = -q
     return float(q[0]), float(q[1]), float(q[2]), float(q[3])
+
+
+def rpy_matrix(roll: float, pitch: float, yaw: float) -> FloatArray:
+    """Rotation ``Rz(yaw) Ry(pitch) Rx(roll)`` (radians; ROS fixed-axis roll, pitch, yaw)."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    out: FloatArray = rot_z(yaw) @ ry @ rx
+    return out
+
+
+def matrix_to_vector(T: npt.ArrayLike) -> FloatArray:
+    """``(x, y, z, qx, qy, qz, qw)`` of a 4x4 or 3x4 transform (w >= 0)."""
+    arr = np.asarray(T, dtype=np.float64)
+    return np.concatenate([arr[:3, 3], matrix_to_quaternion(arr[:3, :3])])
 
 
 def rot_z(yaw: float) -> FloatArray:
@@ -93,7 +109,7 @@ def pose_to_vector(pose: Any) -> npt.NDArray[np.float64]:
         if not np.linalg.det(arr[:3, :3]) > 0.0:
             raise SolidError('pose rotation is not a rotation matrix: non-positive '
                              f'determinant {arr[:3, :3].tolist()}')
-        return np.concatenate([arr[:3, 3], matrix_to_quaternion(arr[:3, :3])])
+        return matrix_to_vector(arr)
     arr = arr.ravel()
     if arr.shape != (7,):
         raise SolidError(f'pose must be a 4x4 or 3x4 matrix or 7 values (x y z qx qy qz qw), '
