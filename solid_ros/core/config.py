@@ -234,6 +234,58 @@ class SolidConfig(_Schema):
     keyframe_min_rotation_deg: float = _p(0.0, 'Keyframe when the sensor turned this much, '
                                           'degrees (needs poses)', low=0.0, high=360.0)
 
+    # Sensor mounting: the sensor's orientation in a level body frame (x forward, z up), as
+    # R = Rz(yaw) Ry(pitch) Rx(roll); points are levelled with it before anything else.
+    mount_roll_deg: float = _p(0.0, 'Sensor roll in the level body frame, degrees (points are '
+                               'levelled before describing and verifying)', low=-180.0,
+                               high=180.0, shape=True)
+    mount_pitch_deg: float = _p(0.0, 'Sensor pitch in the level body frame, degrees', low=-90.0,
+                                high=90.0, shape=True)
+    mount_yaw_deg: float = _p(0.0, 'Sensor yaw in the level body frame, degrees', low=-180.0,
+                              high=180.0, shape=True)
+
+    # Geometric verification (registration with small_gicp; see solid_ros.core.verification).
+    verify: bool = _p(True, 'Verify candidates by registration and publish only verified loops '
+                      'with a 6-DoF pose (false: descriptor-only candidates, yaw only)',
+                      read_only=True)
+    verify_voxel_size: float = _p(0.5, 'Voxel of the stored keyframe clouds and of the fine '
+                                  'registration, metres', low=0.05, high=5.0, read_only=True)
+    verify_coarse_voxel_size: float = _p(1.5, 'Voxel of the coarse registration of structure '
+                                         'points, metres', low=0.1, high=10.0, read_only=True)
+    verify_max_iterations: int = _p(30, 'Iteration limit of each registration', low=1,
+                                    high=1000, read_only=True)
+    verify_inlier_distance: float = _p(0.15, 'A point supports an alignment within this distance '
+                                       "of the other cloud's surface, metres", low=0.005,
+                                       high=5.0, read_only=True)
+    verify_hypotheses: int = _p(3, 'Heading hypotheses (best A-SOLiD shifts) tried per '
+                                'candidate', low=1, high=16)
+    verify_min_coarse_overlap: float = _p(0.2, 'Coarse screen: least fraction of coarse '
+                                          'structure points that must align', low=0.0, high=1.0)
+    verify_min_overlap: float = _p(0.35, 'Least fraction of structure points supporting the '
+                                   'alignment, in both directions', low=0.0, high=1.0)
+    verify_max_rmse: float = _p(0.1, 'Largest RMS point-to-plane distance of supporting points, '
+                                'metres', low=0.001, high=10.0)
+    verify_min_constraint: float = _p(0.0075, 'Least horizontal constraint (information on x, '
+                                      'y, yaw per structure point; 0 in a corridor)', low=0.0,
+                                      high=1.0)
+    verify_max_conflict: float = _p(0.06, 'Largest fraction of points lying in space the other '
+                                    'scan saw through (free-space conflict)', low=0.0, high=1.0)
+    verify_min_spread: float = _p(0.002, 'Constraint left without the strongest object; below '
+                                  'this the pose rests on one object and must pass the '
+                                  'single-object bar', low=0.0, high=1.0)
+    verify_single_object_overlap: float = _p(0.5, 'Single-object bar: least structure overlap '
+                                             '(and at most a third of verify_max_conflict)',
+                                             low=0.0, high=1.0)
+    verify_max_drift: float = _p(0.2, 'Consistency: restarts one voxel off must return within '
+                                 'this, metres', low=0.0, high=100.0)
+    verify_max_drift_deg: float = _p(1.0, 'Consistency: restarts 2 deg off must return within '
+                                     'this, degrees', low=0.0, high=180.0)
+    cloud_capacity: int = _p(20000, 'Keyframe clouds kept for verification; the oldest cloud is '
+                             'dropped beyond this (its scan stays, unverifiable)', low=0,
+                             high=10_000_000, read_only=True)
+    cloud_memory_mb: float = _p(1024.0, 'Memory limit of the keyframe clouds, MB; the oldest is '
+                                'dropped beyond it', low=0.0, high=1e6, read_only=True)
+
     def _validate_cross(self) -> None:
         if self.fov_up_deg <= self.fov_down_deg:
             raise ConfigError(f'fov_up_deg: {self.fov_up_deg} must be greater than '

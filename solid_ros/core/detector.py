@@ -1,26 +1,36 @@
-"""Loop detector: keyframe gating, descriptor, database query, acceptance tests, insertion.
+"""Loop detector: keyframe gating, descriptor, database query, verification, insertion.
 
-One call per scan, :meth:`LoopDetector.process`, describes the scan, queries the database for
-earlier places (the scan itself is added afterwards, so it never matches itself) and returns
-the accepted loop candidates.
+One call per scan, :meth:`LoopDetector.process`, levels the scan (sensor mounting), describes
+it, queries the database for earlier places (the scan itself is added afterwards, so it never
+matches itself), verifies the candidates by registration (``verify``) and returns the loops to
+publish. The same work split in two, :meth:`LoopDetector.propose` (descriptor and database)
+and :meth:`LoopDetector.verify` (registration), lets a node run verification on another thread;
+calling ``verify(propose(...))`` for every scan in order gives exactly what ``process`` gives.
 
 Indices: ``query_index`` is the index of the scan among the keyframes this session stored
 (0, 1, 2, ...; gated-out scans get none). ``match_index`` is the index of the matched scan in
 its own session ``match_session`` (for scans loaded from a file, the index they had there).
 
-Acceptance, in order: the loop gap (``min_loop_gap`` queries since the last accepted loop),
-the distance threshold (strictly below), the margin test (``min_margin``), distinct places (a
-further candidate must lie outside ``margin_neighbourhood`` of the ones already taken), and
-``max_candidates``. The margin of a candidate is the distance of the nearest scan outside its
-neighbourhood minus its own distance; ``math.inf`` when there is no such scan. The search
-fetches ``num_candidates + 2 * margin_neighbourhood + 1`` scans so that this next-best
-distinct place is always among them; the first ``num_candidates`` may become loops.
+Candidates: the ``num_candidates`` nearest stored scans by descriptor distance that are below
+``distance_threshold`` and pass the margin test (``min_margin``). The margin of a candidate is
+the distance of the nearest scan outside its ``margin_neighbourhood`` minus its own distance
+(``math.inf`` when there is none); the search fetches ``num_candidates + 2 *
+margin_neighbourhood + 1`` scans so that this next-best distinct place is always among them.
+
+Acceptance with ``verify`` (see :mod:`solid_ros.core.verification`): every candidate goes
+through the coarse registration; those that pass are verified in order of coarse overlap,
+best first, until ``max_candidates`` distinct places (outside each other's
+``margin_neighbourhood``) are verified. Without ``verify``: candidates in distance order, each
+a distinct place, at most ``max_candidates``. In both modes nothing is published within
+``min_loop_gap`` queries of the last published loop.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,12 +39,24 @@ import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import DescriptorDatabase, Match
-from solid_ros.core.descriptor import Descriptor, describe
+from solid_ros.core.descriptor import Descriptor, describe, preprocess, voxel_downsample
 from solid_ros.core.errors import ConfigError, SolidError
-from solid_ros.core.geometry import pose_to_vector, rotation_deg
-from solid_ros.core.matching import estimate_yaw
+from solid_ros.core.geometry import (
+    matrix_to_vector,
+    pose_to_vector,
+    rot_z,
+    rotation_deg,
+    rpy_matrix,
+)
+from solid_ros.core.keyframes import CloudStore
+from solid_ros.core.matching import estimate_yaw, heading_hypotheses
+from solid_ros.core.verification import Verification, Verifier
 
-__all__ = ['LoopCandidate', 'LoopDetector']
+__all__ = ['LoopCandidate', 'LoopDetector', 'Proposal', 'StageTimes']
+
+FloatArray = npt.NDArray[np.float64]
+_NAN_COV: tuple[float, ...] = (math.nan,) * 36
+_IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 _INT64 = (-(2**63), 2**63 - 1)
 
@@ -52,7 +74,7 @@ def _stamp(stamp_ns: Any) -> int:
 
 @dataclass(frozen=True)
 class LoopCandidate:
-    """One accepted loop closure between the current scan and a stored one.
+    """A loop between the current scan and a stored one, published or only attempted.
 
     Attributes:
         query_index: index of the query scan among this session's keyframes.
@@ -61,10 +83,23 @@ class LoopCandidate:
         match_stamp_ns: stamp of the matched scan, integer nanoseconds.
         match_session: session id of the matched scan.
         distance: cosine distance of the R-SOLiD pair, in [0, 2].
-        yaw: heading of the query relative to the match, radians in (-pi, pi];
-            p_match = Rz(yaw) p_query.
+        yaw: heading of the query relative to the match, radians in (-pi, pi], about the
+            level +z: p_match = Rz(yaw) p_query. From the verified pose when ``verified``,
+            else from A-SOLiD.
         margin: distance of the next-best distinct place minus ``distance``; ``math.inf``
             when there is none.
+        verified: registration verified the loop (``reason == 'verified'``).
+        pose: ``T`` = pose of the query sensor in the match sensor's frame, ``p_match = T
+            p_query``, as ``(tx, ty, tz, qx, qy, qz, qw)``; without verification only the
+            descriptor's yaw (no translation).
+        fitness: fraction of the match's cloud points supporting the alignment (NaN when no
+            registration ran).
+        rmse: RMS point-to-plane distance of the supporting points, metres.
+        covariance: 6x6 row-major covariance of ``T`` (ROS order x, y, z, roll, pitch, yaw;
+            right perturbation in the query sensor frame); NaN unless verified.
+        reason: ``'verified'``, ``'descriptor'`` (accepted without verification) or the
+            verification test that rejected it.
+        overlap: structure overlap of the alignment (NaN when no fine registration ran).
     """
 
     query_index: int
@@ -75,10 +110,70 @@ class LoopCandidate:
     distance: float
     yaw: float
     margin: float
+    verified: bool = False
+    pose: tuple[float, ...] = _IDENTITY_POSE
+    fitness: float = math.nan
+    rmse: float = math.nan
+    covariance: tuple[float, ...] = _NAN_COV
+    reason: str = 'descriptor'
+    overlap: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """Return the fields as a plain dict."""
         return asdict(self)
+
+    def matrix(self) -> FloatArray:
+        """``T`` as a 4x4 matrix."""
+        from solid_ros.core.geometry import quaternion_to_matrix
+
+        out = np.eye(4)
+        out[:3, :3] = quaternion_to_matrix(*self.pose[3:])
+        out[:3, 3] = self.pose[:3]
+        return out
+
+
+@dataclass(frozen=True)
+class _Hit:
+    """A descriptor candidate handed from :meth:`LoopDetector.propose` to ``verify``."""
+
+    match: Match
+    margin: float
+    heading: npt.NDArray[np.float32]
+
+
+@dataclass
+class StageTimes:
+    """Milliseconds per stage of the last verified keyframe (NaN: the stage did not run)."""
+
+    describe: float = math.nan
+    search: float = math.nan
+    verify: float = math.nan
+
+
+@dataclass
+class Proposal:
+    """What :meth:`LoopDetector.propose` found for one keyframe, for :meth:`verify`.
+
+    Attributes:
+        query_index: index of the keyframe in this session.
+        stamp_ns: its stamp.
+        seq: its database sequence number.
+        heading: its heading signature.
+        cloud_points: its keyframe cloud points (levelled, gated, clipped, voxelised), or
+            None without verification.
+        hits: descriptor candidates, nearest first.
+        describe_ms: time spent levelling and describing, milliseconds.
+        search_ms: time spent searching and storing the descriptor, milliseconds.
+    """
+
+    query_index: int
+    stamp_ns: int
+    seq: int
+    heading: FloatArray
+    cloud_points: FloatArray | None
+    hits: list[_Hit] = field(default_factory=list)
+    describe_ms: float = math.nan
+    search_ms: float = math.nan
 
 
 class LoopDetector:
@@ -88,18 +183,33 @@ class LoopDetector:
         config: settings; ``SolidConfig()`` when omitted.
         database: an existing database (e.g. loaded from a file) built with the same
             descriptor settings; a new empty one when omitted.
+        clouds: keyframe clouds of ``database`` (e.g. loaded with it); an empty store when
+            omitted.
     """
 
     def __init__(self, config: SolidConfig | None = None,
-                 database: DescriptorDatabase | None = None) -> None:
+                 database: DescriptorDatabase | None = None,
+                 clouds: CloudStore | None = None) -> None:
         self._config = config if config is not None else SolidConfig()
-        self.database = database if database is not None else DescriptorDatabase(self._config)
+        cfg = self._config
+        self.database = database if database is not None else DescriptorDatabase(cfg)
+        self.clouds = clouds if clouds is not None else CloudStore(
+            cfg.cloud_capacity, int(cfg.cloud_memory_mb * 1e6))
+        self.verifier = Verifier(cfg) if cfg.verify else None
+        self._mount = rpy_matrix(math.radians(cfg.mount_roll_deg),
+                                 math.radians(cfg.mount_pitch_deg),
+                                 math.radians(cfg.mount_yaw_deg))
+        self._levelled = not np.allclose(self._mount, np.eye(3))
         self.last_descriptor: Descriptor | None = None
         self.last_was_keyframe = False
         # Best stored match of the last query, accepted or not (offline PR curves need it).
         self.last_best: LoopCandidate | None = None
+        # Every candidate the last verify() looked at, published or not, with its reason.
+        self.last_attempts: list[LoopCandidate] = []
+        self.times = StageTimes()
+        self.reasons: Counter[str] = Counter()  # verification outcomes so far
         self._kf_stamp: int | None = None
-        self._kf_pose: npt.NDArray[np.float64] | None = None
+        self._kf_pose: FloatArray | None = None
         self._last_loop_query: int | None = None
 
     @property
@@ -124,8 +234,10 @@ class LoopDetector:
                 raise ConfigError(f'{spec.name} is read-only while running '
                                   f'({old!r} -> {new!r})')
         self._config = config
+        if self.verifier is not None:
+            self.verifier.reconfigure(config)
 
-    def is_keyframe(self, stamp_ns: int, pose: npt.NDArray[np.float64] | None = None) -> bool:
+    def is_keyframe(self, stamp_ns: int, pose: FloatArray | None = None) -> bool:
         """Whether a scan at ``stamp_ns`` (and ``pose`` as from :func:`pose_to_vector`)
         would be kept.
 
@@ -157,9 +269,11 @@ class LoopDetector:
                     and turned >= cfg.keyframe_min_rotation_deg)
         return not use_time and not have_pose
 
+    # ------------------------------------------------------------------------------ per scan
+
     def process(self, points: npt.ArrayLike, stamp_ns: int,
                 pose: Any = None) -> list[LoopCandidate]:
-        """Handle one scan: gate, describe, query, then store it.
+        """Handle one scan: gate, describe, query, store, verify.
 
         Args:
             points: (N, 3+) array in the sensor frame.
@@ -168,7 +282,20 @@ class LoopDetector:
                 and stored with the scan.
 
         Returns:
-            Accepted loop candidates, best first (empty for a gated-out scan).
+            Loops to publish, best first (empty for a gated-out scan).
+
+        Raises:
+            SolidError: malformed points or pose.
+        """
+        proposal = self.propose(points, stamp_ns, pose)
+        return [] if proposal is None else self.verify(proposal)
+
+    def propose(self, points: npt.ArrayLike, stamp_ns: int,
+                pose: Any = None) -> Proposal | None:
+        """Descriptor stage: gate, level, describe, query, store the descriptor.
+
+        Returns:
+            The proposal to hand to :meth:`verify`, or None for a gated-out scan.
 
         Raises:
             SolidError: malformed points, pose or stamp (outside int64).
@@ -178,31 +305,56 @@ class LoopDetector:
         if not self.is_keyframe(stamp, vec):
             self.last_was_keyframe = False
             self.last_best = None
-            return []
-        return self.process_descriptor(describe(points, self._config), stamp, vec)
+            self.last_attempts = []
+            self.times = StageTimes()
+            return None
+        t0 = time.perf_counter()
+        pts = self._level(points)
+        desc = describe(pts, self._config)
+        cloud = self._keyframe_points(pts) if self.verifier is not None else None
+        t1 = time.perf_counter()
+        proposal = self._propose_descriptor(desc, stamp, vec, cloud)
+        proposal.describe_ms = (t1 - t0) * 1e3
+        proposal.search_ms = (time.perf_counter() - t1) * 1e3
+        return proposal
 
     def process_descriptor(self, desc: Descriptor, stamp_ns: int,
                            pose: Any = None) -> list[LoopCandidate]:
-        """Like :meth:`process` for an already computed descriptor, without gating."""
-        stamp = _stamp(stamp_ns)
+        """Like :meth:`process` for an already computed descriptor, without gating.
+
+        No keyframe cloud is stored, so with ``verify`` no loop can be verified.
+        """
         vec = pose_to_vector(pose) if pose is not None else None
-        out = self._query(desc, stamp)
-        self.database.add(desc.r_solid, desc.heading, stamp, vec)
-        self.last_descriptor = desc
-        self.last_was_keyframe = True
-        self._kf_stamp, self._kf_pose = stamp, vec
+        return self.verify(self._propose_descriptor(desc, _stamp(stamp_ns), vec, None))
+
+    def _level(self, points: npt.ArrayLike) -> npt.ArrayLike:
+        if not self._levelled:
+            return points
+        arr = np.asarray(points)
+        if arr.ndim != 2 or arr.shape[1] < 3:
+            return arr  # describe() reports the shape error
+        out: FloatArray = arr[:, :3].astype(np.float64) @ self._mount.T
         return out
 
-    def _query(self, desc: Descriptor, stamp: int) -> list[LoopCandidate]:
+    def _keyframe_points(self, points: npt.ArrayLike) -> FloatArray:
+        """Range gate and FOV clip as for the descriptor, then the verification voxel grid."""
         cfg = self._config
-        q_index = self.database.session_count
-        hood = cfg.margin_neighbourhood
-        hits = self.database.search(desc.r_solid, stamp, cfg.num_candidates + 2 * hood + 1,
-                                    exclude_frames=cfg.exclude_recent_frames,
-                                    exclude_sec=cfg.exclude_recent_sec)
+        gated = preprocess(points, cfg.replace(voxel_size=0.0))
+        return voxel_downsample(gated, cfg.verify_voxel_size)
 
-        def same_place(a: Match, b: Match) -> bool:
-            return a.session == b.session and abs(a.index - b.index) <= hood
+    def _propose_descriptor(self, desc: Descriptor, stamp: int, vec: FloatArray | None,
+                            cloud: FloatArray | None) -> Proposal:
+        cfg = self._config
+        db = self.database
+        q_index = db.session_count
+        hood = cfg.margin_neighbourhood
+        hits = db.search(desc.r_solid, stamp, cfg.num_candidates + 2 * hood + 1,
+                         exclude_frames=cfg.exclude_recent_frames,
+                         exclude_sec=cfg.exclude_recent_sec)
+
+        def margin_of(hit: Match) -> float:
+            return min((o.distance for o in hits if not _same_place(o, hit, hood)),
+                       default=math.inf) - hit.distance
 
         self.last_best = None
         if hits:
@@ -210,42 +362,164 @@ class LoopDetector:
             self.last_best = LoopCandidate(
                 query_index=q_index, match_index=top.index, query_stamp_ns=stamp,
                 match_stamp_ns=top.stamp_ns, match_session=top.session, distance=top.distance,
-                yaw=estimate_yaw(desc.heading, self.database.a_solid(top.seq)),
-                margin=min((o.distance for o in hits if not same_place(o, top)),
-                           default=math.inf) - top.distance)
-        if (cfg.min_loop_gap and self._last_loop_query is not None
-                and q_index - self._last_loop_query < cfg.min_loop_gap):
-            return []
-
-        taken: list[tuple[Match, float]] = []
+                yaw=estimate_yaw(desc.heading, db.a_solid(top.seq)), margin=margin_of(top),
+                reason='best')
+        chosen = []
         for hit in hits[:cfg.num_candidates]:
-            if hit.distance >= cfg.distance_threshold or len(taken) >= cfg.max_candidates:
+            if hit.distance >= cfg.distance_threshold:
                 break
-            if any(same_place(hit, t) for t, _ in taken):
-                continue
-            margin = min((o.distance for o in hits if not same_place(o, hit)),
-                         default=math.inf) - hit.distance
+            margin = margin_of(hit)
             if cfg.min_margin > 0.0 and margin < cfg.min_margin:
                 continue
-            taken.append((hit, margin))
+            chosen.append(_Hit(hit, margin, db.a_solid(hit.seq).copy()))
+        seq = db.next_seq
+        db.add(desc.r_solid, desc.heading, stamp, vec)
+        self.last_descriptor = desc
+        self.last_was_keyframe = True
+        self._kf_stamp, self._kf_pose = stamp, vec
+        return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
+                        chosen)
+
+    def verify(self, proposal: Proposal) -> list[LoopCandidate]:
+        """Verification stage for one :meth:`propose` result; call in keyframe order.
+
+        Stores the keyframe's cloud, verifies the candidates and applies ``max_candidates``
+        and ``min_loop_gap``. ``last_attempts`` lists every candidate looked at.
+        """
+        t0 = time.perf_counter()
+        cfg = self._config
+        gap_blocked = bool(cfg.min_loop_gap and self._last_loop_query is not None
+                           and proposal.query_index - self._last_loop_query < cfg.min_loop_gap)
+        if self.verifier is None:
+            attempts = self._accept_by_descriptor(proposal, gap_blocked)
+        else:
+            attempts = self._accept_by_registration(proposal, gap_blocked)
+        taken: list[LoopCandidate] = []
+        for c in attempts:
+            if c.reason not in ('verified', 'descriptor'):
+                continue
+            if len(taken) >= cfg.max_candidates or gap_blocked:
+                break
+            if any(c.match_session == t.match_session
+                   and abs(c.match_index - t.match_index) <= cfg.margin_neighbourhood
+                   for t in taken):
+                continue
+            taken.append(c)
         if taken:
-            self._last_loop_query = q_index
-        return [LoopCandidate(query_index=q_index, match_index=h.index, query_stamp_ns=stamp,
-                              match_stamp_ns=h.stamp_ns, match_session=h.session,
-                              distance=h.distance,
-                              yaw=estimate_yaw(desc.heading, self.database.a_solid(h.seq)),
-                              margin=margin)
-                for h, margin in taken]
+            self._last_loop_query = proposal.query_index
+        self.last_attempts = attempts
+        self.times = StageTimes(proposal.describe_ms, proposal.search_ms,
+                                (time.perf_counter() - t0) * 1e3)
+        return taken
+
+    def _candidate(self, proposal: Proposal, hit: _Hit, yaw: float,
+                   result: Verification | None) -> LoopCandidate:
+        m = hit.match
+        if result is None:
+            T = np.eye(4)
+            T[:3, :3] = rot_z(yaw)
+            return LoopCandidate(proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns,
+                                 m.session, m.distance, yaw, hit.margin,
+                                 pose=self._unlevel_pose(T))
+        cov: tuple[float, ...] = _NAN_COV
+        if result.covariance is not None:
+            cov = tuple(float(v) for v in self._unlevel_cov(result.covariance).ravel())
+        return LoopCandidate(
+            proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns, m.session,
+            m.distance, result.yaw if result.verified else yaw, hit.margin,
+            verified=result.verified, pose=self._unlevel_pose(result.T), fitness=result.fitness,
+            rmse=result.rmse, covariance=cov, reason=result.reason, overlap=result.overlap)
+
+    def _accept_by_descriptor(self, proposal: Proposal, gap_blocked: bool) -> list[LoopCandidate]:
+        return [self._candidate(proposal, h, estimate_yaw(proposal.heading, h.heading), None)
+                for h in proposal.hits]
+
+    def _accept_by_registration(self, proposal: Proposal,
+                                gap_blocked: bool) -> list[LoopCandidate]:
+        verifier = self.verifier
+        assert verifier is not None
+        cfg = self._config
+        clouds = [self.clouds.get(h.match.seq) for h in proposal.hits]
+        if proposal.cloud_points is None:  # process_descriptor: nothing to register
+            clouds = [None] * len(clouds)
+        query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
+                                 else np.zeros((0, 3)))
+        if query.usable:
+            self.clouds.put(proposal.seq, query.keyframe_cloud())
+        self.clouds.drop_before(self.database.oldest_seq)
+        results: dict[int, Verification] = {}
+        yaws: dict[int, float] = {}
+        coarse = []
+        for i, (hit, cloud) in enumerate(zip(proposal.hits, clouds)):
+            hyps = heading_hypotheses(proposal.heading, hit.heading, cfg.verify_hypotheses)
+            yaws[i] = hyps[0][0] if hyps else 0.0
+            if gap_blocked:
+                continue
+            key = (hit.match.session, hit.match.seq)
+            c = verifier.coarse(query, key, cloud, [y for y, _ in hyps])
+            if c.rejection is not None:
+                results[i] = c.rejection
+            else:
+                coarse.append((i, c))
+        coarse.sort(key=lambda ic: -ic[1].coarse_overlap)
+        verified: list[Match] = []
+        for i, c in coarse:
+            hit = proposal.hits[i]
+            if len(verified) >= cfg.max_candidates:
+                break  # enough distinct places: the rest stay unverified ('skipped')
+            if any(_same_place(hit.match, v, cfg.margin_neighbourhood) for v in verified):
+                continue
+            results[i] = verifier.fine(query, c)
+            if results[i].verified:
+                verified.append(hit.match)
+        out = []
+        for i, hit in enumerate(proposal.hits):
+            res = results.get(i)
+            if res is not None:
+                self.reasons[res.reason] += 1
+                out.append(self._candidate(proposal, hit, yaws[i], res))
+        out.sort(key=lambda c: (not c.verified, -_nan_to(c.overlap, -1.0)))
+        return out
+
+    def _unlevel_pose(self, T: FloatArray) -> tuple[float, ...]:
+        if self._levelled:
+            m = np.eye(4)
+            m[:3, :3] = self._mount
+            T = m.T @ T @ m
+        return tuple(float(v) for v in matrix_to_vector(T))
+
+    def _unlevel_cov(self, cov: FloatArray) -> FloatArray:
+        if not self._levelled:
+            return cov
+        b = np.zeros((6, 6))
+        b[:3, :3] = b[3:, 3:] = self._mount.T
+        out: FloatArray = b @ cov @ b.T
+        return out
+
+    # --------------------------------------------------------------------------- persistence
+
+    def reset(self) -> None:
+        """Forget every stored scan and cloud (the configuration stays)."""
+        self.database = DescriptorDatabase(self._config)
+        self.clouds.clear()
+        if self.verifier is not None:
+            self.verifier.clear_cache()
+        self._kf_stamp = self._kf_pose = None
+        self._last_loop_query = None
+        self.last_best = None
+        self.last_attempts = []
 
     def save(self, path: str | Path) -> Path:
-        """Save the database (all sessions) atomically; see :mod:`solid_ros.core.persistence`."""
+        """Save the database (all sessions) and its keyframe clouds atomically; see
+        :mod:`solid_ros.core.persistence`."""
         from solid_ros.core.persistence import save_database
 
-        return save_database(self.database, path)
+        return save_database(self.database, path, self.clouds)
 
     @classmethod
     def load(cls, path: str | Path, config: SolidConfig | None = None) -> LoopDetector:
-        """Start a session that also queries the scans saved in ``path``.
+        """Start a session that also queries (and verifies against) the scans saved in
+        ``path``.
 
         Raises:
             DatabaseError: unreadable file, different descriptor settings, or the file
@@ -254,4 +528,13 @@ class LoopDetector:
         from solid_ros.core.persistence import load_database
 
         cfg = config if config is not None else SolidConfig()
-        return cls(cfg, database=load_database(path, cfg))
+        clouds = CloudStore(cfg.cloud_capacity, int(cfg.cloud_memory_mb * 1e6))
+        return cls(cfg, database=load_database(path, cfg, clouds), clouds=clouds)
+
+
+def _same_place(a: Match, b: Match, hood: int) -> bool:
+    return a.session == b.session and abs(a.index - b.index) <= hood
+
+
+def _nan_to(value: float, default: float) -> float:
+    return default if math.isnan(value) else value

@@ -32,7 +32,7 @@ def rotz(points: npt.NDArray[np.float64], deg: float) -> npt.NDArray[np.float64]
 
 def _cfg(**kw: object) -> SolidConfig:
     base = {'exclude_recent_frames': 2, 'distance_threshold': 0.02, 'search': 'brute',
-            'margin_neighbourhood': 1}
+            'margin_neighbourhood': 1, 'verify': False}
     base.update(kw)
     return SolidConfig().replace(**base)
 
@@ -54,7 +54,11 @@ def test_revisit_is_found_with_fields_and_yaw() -> None:
     assert cand.margin > 0.1
     assert set(cand.to_dict()) == {'query_index', 'match_index', 'query_stamp_ns',
                                    'match_stamp_ns', 'match_session', 'distance', 'yaw',
-                                   'margin'}
+                                   'margin', 'verified', 'pose', 'fitness', 'rmse',
+                                   'covariance', 'reason', 'overlap'}
+    # Descriptor only: the pose is the yaw guess, nothing verified.
+    assert (cand.verified, cand.reason) == (False, 'descriptor')
+    assert cand.pose[:3] == (0.0, 0.0, 0.0) and math.isnan(cand.fitness)
 
 
 def test_recent_scans_are_excluded() -> None:

@@ -1,0 +1,77 @@
+"""Keyframe clouds kept for verification, bounded in count and bytes.
+
+Each stored keyframe may have a downsampled float32 cloud (see
+:class:`~solid_ros.core.registration.KeyframeCloud`), keyed by the database sequence number
+of its scan. Clouds are dropped oldest first when the store exceeds ``cloud_capacity`` clouds
+or ``cloud_memory_mb``, and together with their scan when the database evicts it. A scan
+without a cloud stays searchable but its matches cannot be verified (reason ``no_cloud``).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+from solid_ros.core.registration import KeyframeCloud
+
+__all__ = ['CloudStore']
+
+
+class CloudStore:
+    """Clouds by sequence number, oldest first.
+
+    Args:
+        max_clouds: most clouds kept (0 keeps none).
+        max_bytes: most bytes of points kept.
+    """
+
+    def __init__(self, max_clouds: int, max_bytes: int) -> None:
+        self.max_clouds = int(max_clouds)
+        self.max_bytes = int(max_bytes)
+        self._clouds: OrderedDict[int, KeyframeCloud] = OrderedDict()
+        self._bytes = 0
+        self.dropped = 0  # clouds dropped for the limits (not with their scan)
+
+    def __len__(self) -> int:
+        return len(self._clouds)
+
+    def __contains__(self, seq: object) -> bool:
+        return seq in self._clouds
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the stored points."""
+        return self._bytes
+
+    def get(self, seq: int) -> KeyframeCloud | None:
+        """The cloud of scan ``seq``, or None."""
+        return self._clouds.get(seq)
+
+    def put(self, seq: int, cloud: KeyframeCloud) -> None:
+        """Store the cloud of scan ``seq`` (newer than every stored one), then apply limits."""
+        old = self._clouds.pop(seq, None)
+        if old is not None:
+            self._bytes -= old.nbytes
+        self._clouds[seq] = cloud
+        self._bytes += cloud.nbytes
+        while self._clouds and (len(self._clouds) > self.max_clouds
+                                or self._bytes > self.max_bytes):
+            _, gone = self._clouds.popitem(last=False)
+            self._bytes -= gone.nbytes
+            self.dropped += 1
+
+    def drop_before(self, seq: int) -> None:
+        """Forget clouds of scans older than ``seq`` (evicted from the database)."""
+        while self._clouds:
+            first = next(iter(self._clouds))
+            if first >= seq:
+                break
+            self._bytes -= self._clouds.pop(first).nbytes
+
+    def clear(self) -> None:
+        """Forget every cloud."""
+        self._clouds.clear()
+        self._bytes = 0
+
+    def items(self) -> list[tuple[int, KeyframeCloud]]:
+        """``(seq, cloud)`` pairs, oldest first."""
+        return list(self._clouds.items())

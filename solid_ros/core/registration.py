@@ -1,0 +1,413 @@
+"""Point cloud registration for loop verification, on top of small_gicp.
+
+The registration itself is small_gicp's (GICP for the coarse stage, voxelised GICP for the
+fine one); this module prepares clouds for it and measures how well an alignment is supported.
+
+Frames: every cloud here is in its own (levelled) sensor frame. The query is the registration
+target, prepared once per scan; each candidate is a source. Registration returns ``T_qm``
+(``p_query = T_qm p_match``); callers invert it for the published ``T = T_mq``.
+
+Structure: a point whose surface normal is more than about 45 degrees from vertical
+(``|n_z| < STRUCTURE_MAX_NZ``) belongs to a wall, pole, trunk or car side. Only such points
+constrain the horizontal position and the heading; the ground aligns anywhere, so the coarse
+stage and the acceptance measures look at structure points. Keyframe clouds are stored
+structure first (``n_struct`` rows, then the rest), so a candidate's structure is known
+without recomputing its normals.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.errors import SolidError
+from solid_ros.core.geometry import rot_z
+
+__all__ = ['STRUCTURE_MAX_NZ', 'Alignment', 'KeyframeCloud', 'Query', 'RegistrationSettings',
+           'Source', 'Support', 'align_coarse', 'align_fine', 'load_small_gicp', 'measure_support']
+
+FloatArray = npt.NDArray[np.float64]
+
+STRUCTURE_MAX_NZ = 0.7  # |n_z| below this: a non-horizontal surface (about 45 deg or steeper)
+_NEIGHBOURS = 10  # points per normal/covariance estimate
+_MIN_POINTS = 10  # fewer points than this cannot be registered
+_COARSE_ITERATIONS = 15  # the coarse stage only has to land in the fine stage's basin
+_GOOD_COARSE = 0.5  # coarse overlap that ends the search over heading hypotheses
+
+
+def load_small_gicp() -> Any:
+    """Import small_gicp on first use, so descriptor-only users need not install it.
+
+    Raises:
+        SolidError: small_gicp is not installed (the message says how to install it).
+    """
+    try:
+        import small_gicp as sg
+    except ImportError as err:
+        raise SolidError('loop verification needs small_gicp: pip install small-gicp '
+                         '(or set verify: false for descriptor-only loops)') from err
+    return sg
+
+
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """Registration and support measurement settings (from ``SolidConfig.verify_*``).
+
+    Attributes:
+        voxel: voxel size of keyframe clouds and of the fine stage, metres.
+        coarse_voxel: voxel size of the coarse (structure only) stage, metres.
+        coarse_distance: largest correspondence distance of the coarse stage, metres.
+        max_iterations: iteration limit of each registration.
+        inlier_distance: a point supports an alignment when its nearest neighbour in the other
+            cloud lies within ``2 * voxel`` and within this distance of that neighbour's
+            tangent plane, metres.
+    """
+
+    voxel: float = 0.5
+    coarse_voxel: float = 1.5
+    coarse_distance: float = 3.0
+    max_iterations: int = 30
+    inlier_distance: float = 0.15
+
+    @property
+    def neighbour_distance(self) -> float:
+        """Nearest-neighbour distance limit of a supporting point, metres."""
+        return 2.0 * self.voxel
+
+
+@dataclass(frozen=True)
+class KeyframeCloud:
+    """A stored keyframe cloud: float32 points, structure first.
+
+    Attributes:
+        points: (N, 3) float32 in the keyframe's levelled sensor frame.
+        n_struct: the first ``n_struct`` rows are structure points.
+    """
+
+    points: npt.NDArray[np.float32]
+    n_struct: int
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the points."""
+        return int(self.points.nbytes)
+
+
+class Query:
+    """A scan prepared as registration target: normals, kd-tree, voxel maps, structure.
+
+    Args:
+        points: (N, 3) points of the keyframe cloud (already range-gated, FOV-clipped and
+            voxel-downsampled at ``settings.voxel``), levelled sensor frame.
+        settings: registration settings.
+    """
+
+    def __init__(self, points: npt.ArrayLike, settings: RegistrationSettings) -> None:
+        sg = load_small_gicp()
+        self.settings = settings
+        pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        self.size = len(pts)
+        self.usable = self.size >= _MIN_POINTS
+        self.points: FloatArray = pts
+        self.normals: FloatArray = np.zeros_like(pts)
+        self.structure: npt.NDArray[np.bool_] = np.zeros(len(pts), dtype=bool)
+        if not self.usable:
+            return
+        cloud = sg.PointCloud(pts)
+        tree = sg.KdTree(cloud)
+        sg.estimate_normals_covariances(cloud, tree, num_neighbors=_NEIGHBOURS)
+        self.cloud, self.tree = cloud, tree
+        self.normals = np.ascontiguousarray(cloud.normals()[:, :3])
+        self.structure = np.abs(self.normals[:, 2]) < STRUCTURE_MAX_NZ
+        self.vmap = sg.GaussianVoxelMap(settings.voxel)
+        self.vmap.insert(cloud)
+        struct_pts = pts[self.structure]
+        self.coarse = sg.voxelgrid_sampling(struct_pts, settings.coarse_voxel)
+        self.coarse_tree = sg.KdTree(self.coarse)
+        if self.coarse.size() >= _MIN_POINTS:
+            sg.estimate_covariances(self.coarse, self.coarse_tree, num_neighbors=_NEIGHBOURS)
+        self.ranges = range_image(pts)
+
+    @property
+    def n_struct(self) -> int:
+        """Number of structure points."""
+        return int(self.structure.sum())
+
+    def keyframe_cloud(self) -> KeyframeCloud:
+        """The cloud to store for this scan: float32, structure first."""
+        order = np.argsort(~self.structure, kind='stable')
+        return KeyframeCloud(self.points[order].astype(np.float32), self.n_struct)
+
+
+class Source:
+    """A stored keyframe cloud prepared as registration source (coarse and fine).
+
+    Args:
+        cloud: the stored cloud.
+        settings: registration settings.
+    """
+
+    def __init__(self, cloud: KeyframeCloud, settings: RegistrationSettings) -> None:
+        sg = load_small_gicp()
+        self.points: FloatArray = np.ascontiguousarray(cloud.points, dtype=np.float64)
+        self.n_struct = int(cloud.n_struct)
+        self.usable = len(self.points) >= _MIN_POINTS
+        self.coarse = sg.voxelgrid_sampling(self.points[:self.n_struct], settings.coarse_voxel)
+        if self.coarse.size() >= _MIN_POINTS:
+            sg.estimate_covariances(self.coarse, num_neighbors=_NEIGHBOURS)
+        self._fine: Any = None
+        self._tree: Any = None
+        self._ranges: FloatArray | None = None
+
+    @property
+    def ranges(self) -> FloatArray:
+        """Range image of the cloud (computed on first use)."""
+        if self._ranges is None:
+            self._ranges = range_image(self.points)
+        return self._ranges
+
+    def fine(self) -> tuple[Any, Any]:
+        """The full cloud with covariances and its kd-tree (computed on first use)."""
+        if self._fine is None:
+            sg = load_small_gicp()
+            cloud = sg.PointCloud(self.points)
+            tree = sg.KdTree(cloud)
+            sg.estimate_covariances(cloud, tree, num_neighbors=_NEIGHBOURS)
+            self._fine, self._tree = cloud, tree
+        return self._fine, self._tree
+
+
+_BIN_DEG = 1.0
+_N_AZ = int(360 / _BIN_DEG)
+_N_EL = int(180 / _BIN_DEG)
+
+
+def _bins(points: FloatArray) -> tuple[npt.NDArray[np.intp], FloatArray]:
+    """Flat range-image bin of each point (1 degree azimuth x elevation) and its range."""
+    r = np.sqrt(np.einsum('ij,ij->i', points, points))
+    az = np.degrees(np.arctan2(points[:, 1], points[:, 0])) + 180.0
+    el = np.degrees(np.arcsin(np.clip(points[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0))) + 90.0
+    ia = np.minimum((az / _BIN_DEG).astype(np.intp), _N_AZ - 1)
+    ie = np.minimum((el / _BIN_DEG).astype(np.intp), _N_EL - 1)
+    return ia * _N_EL + ie, r
+
+
+def range_image(points: FloatArray) -> FloatArray:
+    """Nearest range per 1-degree direction bin and its 8 neighbours (inf where the cloud has
+    no point): the neighbourhood absorbs edge pixels and small misalignments."""
+    img = np.full(_N_AZ * _N_EL, np.inf)
+    if len(points):
+        b, r = _bins(points)
+        np.minimum.at(img, b, r)
+    grid = img.reshape(_N_AZ, _N_EL)
+    rows = np.minimum(grid, np.minimum(np.roll(grid, 1, axis=0), np.roll(grid, -1, axis=0)))
+    out = rows.copy()
+    out[:, 1:] = np.minimum(out[:, 1:], rows[:, :-1])
+    out[:, :-1] = np.minimum(out[:, :-1], rows[:, 1:])
+    flat: FloatArray = out.reshape(-1)
+    return flat
+
+
+def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float) -> float:
+    """Fraction of ``points`` (in the viewing sensor's frame) that lie in front of the surface
+    that sensor saw in their direction, by more than ``margin`` plus 5 % of the range: the
+    sensor looked through where they claim a surface is. Directions it saw nothing in do not
+    count (sky, outside its field of view, beyond its range)."""
+    if not len(points):
+        return 0.0
+    b, r = _bins(points)
+    seen = ranges[b]
+    known = np.isfinite(seen)
+    if not known.any():
+        return 0.0
+    conflict = r[known] < seen[known] - margin - 0.05 * seen[known]
+    return float(conflict.mean())
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """Result of one registration.
+
+    Attributes:
+        T_qm: 4x4 transform with ``p_query = T_qm p_match``.
+        converged: small_gicp's convergence flag.
+        iterations: iterations run.
+        coarse_overlap: (coarse stage) fraction of the candidate's coarse structure points
+            within half a coarse voxel of the query's after alignment; NaN for fine results.
+        hypothesis: index of the heading hypothesis that won (coarse stage), else -1.
+    """
+
+    T_qm: FloatArray
+    converged: bool
+    iterations: int
+    coarse_overlap: float = math.nan
+    hypothesis: int = -1
+
+
+def align_coarse(query: Query, source: Source, yaws: list[float],
+                 settings: RegistrationSettings) -> Alignment | None:
+    """Register the structure of ``source`` to the query from each heading hypothesis.
+
+    Hypotheses are tried in order; once one reaches a coarse overlap of ``_GOOD_COARSE`` the
+    rest are skipped (the A-SOLiD's first guess is usually right).
+
+    Args:
+        query: the prepared query.
+        source: the prepared candidate.
+        yaws: heading hypotheses in the detector's convention (``p_match = Rz(yaw) p_query``).
+        settings: registration settings.
+
+    Returns:
+        The hypothesis with the largest coarse overlap; None when either cloud has too little
+        structure to register.
+    """
+    if query.coarse.size() < _MIN_POINTS or source.coarse.size() < _MIN_POINTS or not yaws:
+        return None
+    sg = load_small_gicp()
+    best: Alignment | None = None
+    src_pts = source.coarse.points()[:, :3]
+    for k, yaw in enumerate(yaws):
+        init = np.eye(4)
+        init[:3, :3] = rot_z(-yaw)  # T_qm = inverse of the hypothesis Rz(yaw)
+        res = sg.align(query.coarse, source.coarse, query.coarse_tree, init,
+                       registration_type='GICP',
+                       max_correspondence_distance=settings.coarse_distance,
+                       max_iterations=min(settings.max_iterations, _COARSE_ITERATIONS))
+        T = np.asarray(res.T_target_source, dtype=np.float64)
+        _, sq = query.coarse_tree.batch_nearest_neighbor_search(src_pts @ T[:3, :3].T + T[:3, 3])
+        overlap = float(np.mean(np.asarray(sq) < (0.5 * settings.coarse_voxel) ** 2))
+        if best is None or overlap > best.coarse_overlap:
+            best = Alignment(T, bool(res.converged), int(res.iterations), overlap, k)
+        if overlap >= _GOOD_COARSE:
+            break
+    return best
+
+
+def align_fine(query: Query, source: Source, T_qm: FloatArray,
+               settings: RegistrationSettings) -> Alignment:
+    """Refine ``T_qm`` with voxelised GICP against the query's voxel map (all points)."""
+    sg = load_small_gicp()
+    fine, _ = source.fine()
+    res = sg.align(query.vmap, fine, np.asarray(T_qm, dtype=np.float64),
+                   max_correspondence_distance=settings.neighbour_distance,
+                   max_iterations=settings.max_iterations)
+    return Alignment(np.asarray(res.T_target_source, dtype=np.float64), bool(res.converged),
+                     int(res.iterations))
+
+
+@dataclass(frozen=True)
+class Support:
+    """How well the two clouds support an alignment.
+
+    A candidate point supports the alignment when, mapped into the query frame, its nearest
+    query point lies within ``2 * voxel`` and it lies within ``inlier_distance`` of that
+    point's tangent plane.
+
+    Attributes:
+        fitness: fraction of all candidate points that support it (ground included).
+        overlap_match: fraction of the candidate's structure points that support it.
+        overlap_query: fraction of the query's structure points with a candidate point within
+            ``2 * voxel`` (the candidate explains the query's structure).
+        rmse: RMS point-to-plane distance of the supporting points, metres.
+        constraint: smallest eigenvalue of the information that supporting structure points
+            give on (x, y, 10 m x yaw), divided by the query's structure points: how well the
+            horizontal position and heading are pinned down (0 in a corridor or on a plane).
+        information: 6x6 point-to-plane information sum J J^T over all supporting points,
+            J = (t x n, n) for a left perturbation of ``T_qm`` (rotation first).
+        inliers: number of supporting points.
+        patches: coarse voxels holding supporting points: independent surface patches (the
+            errors of points on one patch are correlated).
+        conflict: free-space conflict, the larger of both directions: the fraction of one
+            cloud's points (where the other sensor saw a surface in their direction) lying
+            in front of that surface, in space the other sensor saw through.
+    """
+
+    fitness: float
+    overlap_match: float
+    overlap_query: float
+    rmse: float
+    constraint: float
+    information: FloatArray
+    inliers: int
+    patches: int
+    conflict: float
+    spread: float
+
+    @property
+    def overlap(self) -> float:
+        """The smaller of the two structure overlaps."""
+        return min(self.overlap_match, self.overlap_query)
+
+
+def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float) -> float:
+    """Horizontal constraint left when the object that contributes most is taken away.
+
+    Objects are clusters of structure points connected in a top-view grid of ``cell`` metres.
+    One generic object (a single building corner, one wall) pins the pose down by itself but
+    matches any other like it; a real place is pinned by several.
+    """
+    if len(points) == 0:
+        return 0.0
+    from scipy import ndimage
+
+    ij = np.floor(points[:, :2] / cell).astype(np.int64)
+    ij -= ij.min(axis=0)
+    grid = np.zeros(tuple(ij.max(axis=0) + 1), dtype=bool)
+    grid[ij[:, 0], ij[:, 1]] = True
+    labels, count = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))
+    obj = labels[ij[:, 0], ij[:, 1]] - 1
+    total = rows.T @ rows
+    sizes = np.bincount(obj, minlength=count)
+    worst = math.inf
+    for k in np.argsort(-sizes)[:3]:
+        part = rows[obj == k]
+        worst = min(worst, float(np.linalg.eigvalsh(total - part.T @ part)[0]))
+    return worst
+
+
+def measure_support(query: Query, source: Source, T_qm: FloatArray,
+                    settings: RegistrationSettings) -> Support:
+    """Measure the support of ``T_qm`` in both directions (see :class:`Support`)."""
+    T = np.asarray(T_qm, dtype=np.float64)
+    moved = source.points @ T[:3, :3].T + T[:3, 3]
+    idx, sq = query.tree.batch_nearest_neighbor_search(moved)
+    idx = np.asarray(idx, dtype=np.intp)
+    near = np.asarray(sq) < settings.neighbour_distance ** 2
+    normals = query.normals[idx]
+    plane = np.abs(np.einsum('ij,ij->i', moved - query.points[idx], normals))
+    inlier = near & (plane < settings.inlier_distance)
+    struct_m = np.arange(len(moved)) < source.n_struct
+    n_inl = int(inlier.sum())
+    rmse = float(math.sqrt(float(np.mean(plane[inlier] ** 2)))) if n_inl else math.inf
+    jac = np.hstack([np.cross(moved[inlier], normals[inlier]), normals[inlier]])
+    info: FloatArray = jac.T @ jac
+    s_rows = inlier[inlier] & struct_m[inlier]
+    js = jac[s_rows]
+    # Horizontal block (x, y, yaw); yaw scaled by a 10 m lever to compare with metres.
+    hz = js[:, [3, 4, 2]] * np.array([1.0, 1.0, 0.1])
+    constraint = float(np.linalg.eigvalsh(hz.T @ hz)[0]) / max(query.n_struct, 1)
+    spread = _without_strongest_object(moved[inlier][s_rows], hz, settings.coarse_voxel)
+    spread /= max(query.n_struct, 1)
+    # Query structure explained by the candidate: query points mapped into the match frame.
+    _, tree = source.fine()
+    back = (query.points[query.structure] - T[:3, 3]) @ T[:3, :3]
+    if len(back):
+        _, sq2 = tree.batch_nearest_neighbor_search(back)
+        overlap_q = float(np.mean(np.asarray(sq2) < settings.neighbour_distance ** 2))
+    else:
+        overlap_q = 0.0
+    n_sm = int(struct_m.sum())
+    cells = np.floor(moved[inlier] / settings.coarse_voxel).astype(np.int64)
+    patches = len(np.unique(cells, axis=0)) if n_inl else 0
+    margin = settings.neighbour_distance
+    conflict = max(free_space_conflict(moved, query.ranges, margin),
+                   free_space_conflict((query.points - T[:3, 3]) @ T[:3, :3],
+                                       source.ranges, margin))
+    return Support(spread=max(spread, 0.0), fitness=n_inl / max(len(moved), 1),
+                   overlap_match=int((inlier & struct_m).sum()) / max(n_sm, 1),
+                   overlap_query=overlap_q, rmse=rmse, constraint=max(constraint, 0.0),
+                   information=info, inliers=n_inl, patches=patches, conflict=conflict)

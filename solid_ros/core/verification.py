@@ -1,0 +1,286 @@
+"""Geometric verification of loop candidates: registration plus acceptance tests.
+
+For a query scan and a descriptor candidate, in this order (the first failing test names the
+rejection ``reason``):
+
+1. ``no_cloud``: the candidate has no stored keyframe cloud (evicted, or loaded from a
+   database saved without clouds): it cannot be verified and is never accepted.
+2. ``too_sparse``: either cloud has fewer than 10 points, or fewer than 10 structure points
+   after the coarse voxel grid.
+3. ``coarse_overlap``: the coarse stage registers the candidate's structure points (see
+   :mod:`solid_ros.core.registration`) from each heading hypothesis (the best A-SOLiD shifts)
+   and keeps the best; fewer than ``verify_min_coarse_overlap`` of its coarse structure points
+   land within half a coarse voxel of the query's. This is the cheap screen most false
+   candidates stop at.
+4. ``not_converged``: the fine stage (voxelised GICP on all points) did not converge within
+   ``verify_max_iterations``.
+5. ``overlap``: fewer than ``verify_min_overlap`` of the structure points support the
+   alignment, in either direction (candidate into query, query into candidate).
+6. ``rmse``: the supporting points' RMS point-to-plane distance exceeds ``verify_max_rmse``.
+7. ``conflict``: more than ``verify_max_conflict`` of one scan's points lie in space the
+   other sensor saw through (in front of the surface it measured in their direction, by more
+   than two voxels and 5 % of the range); directions it saw nothing in do not count.
+8. ``constraint``: the supporting structure leaves a horizontal direction or the heading
+   nearly free (a corridor, a single wall, a plane): the smallest eigenvalue of its
+   information on (x, y, 10 m x yaw) per query structure point is below
+   ``verify_min_constraint``.
+9. ``single_object``: the pose rests on one object: without the object that contributes most
+   (structure clustered in a top-view grid of the coarse voxel), the constraint falls below
+   ``verify_min_spread``. One generic object (a building corner, a wall end) matches any other
+   like it, so such a loop must also clear a stricter bar: structure overlap at least
+   ``verify_single_object_overlap`` and conflict at most a third of ``verify_max_conflict``.
+10. ``unstable``: consistency check. The fine stage is restarted from the solution moved one
+   fine voxel along the least constrained horizontal direction and turned 2 degrees, both
+   ways (within the fine stage's reach of two voxels); a
+   true alignment sits in a basin and is found again, a spurious one slides away. The
+   restarts must end within ``verify_max_drift`` metres and ``verify_max_drift_deg`` degrees.
+
+Passing all of them gives ``verified``. The relative pose is ``T = T_mq`` (``p_match = T
+p_query``), its covariance the Gauss-Newton estimate ``sigma^2 (sum J J^T)^-1`` of the
+point-to-plane problem at the solution, ``sigma`` the inlier RMS (at least 2 cm), inflated
+by the supporting points per occupied coarse voxel (points on one surface patch share their
+error), for a right perturbation ``T exp(delta)`` with ``delta = (tx, ty, tz, rx, ry, rz)`` in
+the query frame (ROS order). It still ignores unmodelled errors (moved objects, sensor
+motion within a scan), so treat it as optimistic: a lower bound a back end may scale.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Hashable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.geometry import rot_z
+from solid_ros.core.registration import (
+    Alignment,
+    KeyframeCloud,
+    Query,
+    RegistrationSettings,
+    Source,
+    align_coarse,
+    align_fine,
+    measure_support,
+)
+
+__all__ = ['REASONS', 'CoarseResult', 'Verification', 'Verifier', 'registration_settings']
+
+FloatArray = npt.NDArray[np.float64]
+
+REASONS = ('verified', 'no_cloud', 'too_sparse', 'coarse_overlap', 'not_converged', 'overlap',
+           'rmse', 'conflict', 'constraint', 'single_object', 'unstable')
+_PROBE_VOXELS = 1.0  # restart offset, in fine voxels (half the correspondence distance)
+_PROBE_DEG = 2.0
+_SIGMA_FLOOR = 0.02
+_SOURCE_CACHE = 16  # prepared candidate clouds kept: consecutive queries hit the same places
+
+
+def registration_settings(config: SolidConfig) -> RegistrationSettings:
+    """The registration settings of a configuration."""
+    return RegistrationSettings(voxel=config.verify_voxel_size,
+                                coarse_voxel=config.verify_coarse_voxel_size,
+                                coarse_distance=2.0 * config.verify_coarse_voxel_size,
+                                max_iterations=config.verify_max_iterations,
+                                inlier_distance=config.verify_inlier_distance)
+
+
+@dataclass(frozen=True)
+class Verification:
+    """Outcome of verifying one candidate.
+
+    Attributes:
+        verified: every test passed.
+        reason: ``'verified'`` or the first failed test (see the module docstring).
+        T: 4x4 ``T_mq`` (``p_match = T p_query``) in the levelled frames; the best estimate
+            even when rejected (identity when no registration ran).
+        fitness: fraction of all candidate points supporting the alignment.
+        rmse: RMS point-to-plane distance of the supporting points, metres.
+        overlap: structure overlap, the smaller of the two directions.
+        constraint: horizontal constraint per query structure point.
+        coarse_overlap: coarse-stage structure overlap.
+        drift_m: largest translation between the solution and the restarts, metres.
+        drift_deg: largest rotation between the solution and the restarts, degrees.
+        covariance: 6x6 in ROS order (x, y, z, roll, pitch, yaw); NaN when not verified.
+        hypothesis: index of the heading hypothesis the coarse stage kept (-1: none).
+    """
+
+    verified: bool
+    reason: str
+    T: FloatArray
+    fitness: float = math.nan
+    rmse: float = math.nan
+    overlap: float = math.nan
+    constraint: float = math.nan
+    coarse_overlap: float = math.nan
+    conflict: float = math.nan
+    spread: float = math.nan
+    drift_m: float = math.nan
+    drift_deg: float = math.nan
+    covariance: FloatArray | None = None
+    hypothesis: int = -1
+
+    @property
+    def yaw(self) -> float:
+        """Heading of ``T`` about +z, radians in (-pi, pi]."""
+        return math.atan2(float(self.T[1, 0]), float(self.T[0, 0]))
+
+
+@dataclass
+class CoarseResult:
+    """A candidate after the coarse stage, before the fine stage and the tests."""
+
+    key: Hashable
+    source: Source | None
+    alignment: Alignment | None
+    rejection: Verification | None
+
+    @property
+    def coarse_overlap(self) -> float:
+        """Coarse overlap (-1 when the candidate was already rejected)."""
+        return -1.0 if self.alignment is None else float(self.alignment.coarse_overlap)
+
+
+def _rejected(reason: str, T_qm: FloatArray | None = None, **scores: float) -> Verification:
+    T: FloatArray = np.eye(4) if T_qm is None else _inv(T_qm)
+    return Verification(False, reason, T, **scores)  # type: ignore[arg-type]
+
+
+def _angle_deg(R: FloatArray) -> float:
+    return math.degrees(math.acos(min(max((float(np.trace(R)) - 1.0) / 2.0, -1.0), 1.0)))
+
+
+class Verifier:
+    """Verifies candidates of a query scan; keeps a small cache of prepared candidates.
+
+    Args:
+        config: settings (the ``verify_*`` keys); :meth:`reconfigure` applies runtime changes
+            of the acceptance thresholds.
+    """
+
+    def __init__(self, config: SolidConfig) -> None:
+        self._config = config
+        self.settings = registration_settings(config)
+        self._cache: OrderedDict[Hashable, Source] = OrderedDict()
+
+    def reconfigure(self, config: SolidConfig) -> None:
+        """Use new thresholds (registration settings are read-only and unchanged)."""
+        self._config = config
+
+    def prepare(self, points: npt.ArrayLike) -> Query:
+        """Prepare a keyframe cloud as query (target) of the registrations."""
+        return Query(points, self.settings)
+
+    def _source(self, key: Hashable, cloud: KeyframeCloud) -> Source:
+        src = self._cache.get(key)
+        if src is None:
+            src = Source(cloud, self.settings)
+            self._cache[key] = src
+            while len(self._cache) > _SOURCE_CACHE:
+                self._cache.popitem(last=False)
+        else:
+            self._cache.move_to_end(key)
+        return src
+
+    def clear_cache(self) -> None:
+        """Forget prepared candidates (after a reset)."""
+        self._cache.clear()
+
+    def coarse(self, query: Query, key: Hashable, cloud: KeyframeCloud | None,
+               yaws: list[float]) -> CoarseResult:
+        """Coarse stage of one candidate (tests 1-3)."""
+        if cloud is None:
+            return CoarseResult(key, None, None, _rejected('no_cloud'))
+        if not query.usable:
+            return CoarseResult(key, None, None, _rejected('too_sparse'))
+        src = self._source(key, cloud)
+        if not src.usable:
+            return CoarseResult(key, None, None, _rejected('too_sparse'))
+        al = align_coarse(query, src, yaws, self.settings)
+        if al is None:
+            return CoarseResult(key, None, None, _rejected('too_sparse'))
+        if not al.coarse_overlap >= self._config.verify_min_coarse_overlap:
+            return CoarseResult(key, src, None, _rejected(
+                'coarse_overlap', al.T_qm, coarse_overlap=al.coarse_overlap))
+        return CoarseResult(key, src, al, None)
+
+    def fine(self, query: Query, coarse: CoarseResult) -> Verification:
+        """Fine stage and tests 4-8 of a candidate that passed :meth:`coarse`."""
+        if coarse.rejection is not None:
+            return coarse.rejection
+        assert coarse.source is not None and coarse.alignment is not None
+        cfg, settings, src = self._config, self.settings, coarse.source
+        co = coarse.alignment.coarse_overlap
+        hyp = coarse.alignment.hypothesis
+        fine = align_fine(query, src, coarse.alignment.T_qm, settings)
+        T_qm = fine.T_qm
+        sup = measure_support(query, src, T_qm, settings)
+        scores = {'fitness': sup.fitness, 'rmse': sup.rmse, 'overlap': sup.overlap,
+                  'constraint': sup.constraint, 'coarse_overlap': co, 'conflict': sup.conflict,
+                  'spread': sup.spread}
+        if not fine.converged:
+            return _rejected('not_converged', T_qm, **scores)
+        if not sup.overlap >= cfg.verify_min_overlap:
+            return _rejected('overlap', T_qm, **scores)
+        if not sup.rmse <= cfg.verify_max_rmse:
+            return _rejected('rmse', T_qm, **scores)
+        if not sup.conflict <= cfg.verify_max_conflict:
+            return _rejected('conflict', T_qm, **scores)
+        if not sup.constraint >= cfg.verify_min_constraint:
+            return _rejected('constraint', T_qm, **scores)
+        if not (sup.spread >= cfg.verify_min_spread
+                or (sup.overlap >= cfg.verify_single_object_overlap
+                    and sup.conflict <= cfg.verify_max_conflict / 3.0)):
+            return _rejected('single_object', T_qm, **scores)
+        drift_m, drift_deg = self._drift(query, src, T_qm, sup.information)
+        scores.update(drift_m=drift_m, drift_deg=drift_deg)
+        if not (drift_m <= cfg.verify_max_drift and drift_deg <= cfg.verify_max_drift_deg):
+            return _rejected('unstable', T_qm, **scores)
+        cov = _covariance(sup.information, sup.rmse, sup.inliers / max(sup.patches, 1))
+        if cov is None:
+            return _rejected('constraint', T_qm, **scores)
+        T_mq = _inv(T_qm)
+        return Verification(True, 'verified', T_mq, covariance=cov,
+                            hypothesis=hyp, **scores)
+
+    def _drift(self, query: Query, src: Source, T_qm: FloatArray,
+               info: FloatArray) -> tuple[float, float]:
+        """Largest distance and angle between ``T_qm`` and two perturbed restarts."""
+        _, vecs = np.linalg.eigh(info[3:5, 3:5])
+        weak = vecs[:, 0]
+        worst_m = worst_deg = 0.0
+        for sign in (1.0, -1.0):
+            shake = np.eye(4)
+            shake[:3, :3] = rot_z(sign * math.radians(_PROBE_DEG))
+            shake[:2, 3] = sign * _PROBE_VOXELS * self.settings.voxel * weak
+            again = align_fine(query, src, shake @ T_qm, self.settings)
+            diff = np.linalg.inv(T_qm) @ again.T_qm
+            worst_m = max(worst_m, float(np.linalg.norm(diff[:3, 3])))
+            worst_deg = max(worst_deg, _angle_deg(diff[:3, :3]))
+        return worst_m, worst_deg
+
+
+def _covariance(info: FloatArray, rmse: float, per_patch: float) -> FloatArray | None:
+    """ROS-order covariance from the rotation-first point-to-plane information.
+
+    ``per_patch`` (supporting points per coarse voxel) inflates it: points of one surface patch
+    share their error, so a patch counts once, not once per point.
+    """
+    try:
+        cov_rt = _inv(info)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov_rt)):
+        return None
+    sigma2 = max(rmse, _SIGMA_FLOOR) ** 2 * max(per_patch, 1.0)
+    order = [3, 4, 5, 0, 1, 2]
+    out: FloatArray = sigma2 * cov_rt[np.ix_(order, order)]
+    sym: FloatArray = 0.5 * (out + out.T)
+    return sym
+
+
+def _inv(m: FloatArray) -> FloatArray:
+    return np.asarray(np.linalg.inv(m), dtype=np.float64)
