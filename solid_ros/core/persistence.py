@@ -9,6 +9,11 @@ File layout (``numpy.savez``, no pickled objects; loaded with ``allow_pickle=Fal
   ``a_solid`` (n, N_a) float32, unit-normalised; ``stamps_ns`` (n,) int64; ``indices`` (n,)
   int64 (index of the scan within its session); ``sessions`` (n,) int32; ``poses`` (n, 7)
   float32 ``x y z qx qy qz qw`` (NaN rows where the scan had no pose). Rows are oldest first.
+- Keyframe clouds (version 2): ``cloud_points`` (P, 3) float32, all clouds one after another
+  (each structure points first); ``cloud_offsets`` (n + 1,) int64, scan ``i`` owns rows
+  ``offsets[i]:offsets[i + 1]`` (empty: no cloud); ``cloud_struct`` (n,) int32, its structure
+  points (-1: no cloud). ``meta['cloud_points']`` is P. Version 1 files (no clouds) still load;
+  their scans cannot be verified.
 
 Reading checks every array's dtype and shape in its ``.npy`` header, and the header against the
 archive member's size, before any array is read (:func:`read_npz_headers`), so a crafted file is
@@ -45,13 +50,16 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import POSE_FIELDS, DescriptorDatabase
 from solid_ros.core.errors import DatabaseError
+from solid_ros.core.keyframes import CloudStore
+from solid_ros.core.registration import KeyframeCloud
 
 __all__ = ['FORMAT', 'VERSION', 'NpyHeader', 'check_save_target', 'is_database',
            'load_database', 'read_database', 'read_npz_headers', 'remove_stale_temporaries',
            'save_database']
 
 FORMAT = 'solid_ros.database'
-VERSION = 1
+VERSION = 2
+_READABLE = (1, 2)
 
 _READ_ERRORS = (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile,
                 zlib.error, UnicodeDecodeError, RecursionError, OverflowError, MemoryError,
@@ -63,12 +71,14 @@ _NPY_MAGIC = b'\x93NUMPY'
 _ZIP_MAGICS = (b'PK\x03\x04', b'PK\x05\x06')
 
 
-def save_database(db: DescriptorDatabase, path: str | Path) -> Path:
+def save_database(db: DescriptorDatabase, path: str | Path,
+                  clouds: CloudStore | None = None) -> Path:
     """Write every stored scan of ``db`` (all sessions) to ``path`` atomically.
 
     Args:
         db: the database.
         path: target file; written exactly as named (no ``.npz`` is appended).
+        clouds: keyframe clouds of ``db``'s scans, saved with them (None: no clouds).
 
     Returns:
         The path written.
@@ -80,13 +90,34 @@ def save_database(db: DescriptorDatabase, path: str | Path) -> Path:
     check_save_target(target)
     remove_stale_temporaries(target)
     arrays: dict[str, Any] = db.export_arrays()
+    arrays.update(_export_clouds(db, clouds))
     meta = {'format': FORMAT, 'version': VERSION, 'count': int(len(arrays['indices'])),
             'num_range': db.num_range, 'num_angle': db.num_angle,
+            'cloud_points': int(len(arrays['cloud_points'])),
             'shape_params': db.config.shape_params(), 'fingerprint': db.config.fingerprint(),
             'sessions': sorted({int(s) for s in arrays['sessions']})}
     arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
     _write_atomic(target, lambda f: np.savez(f, **arrays))
     return target
+
+
+def _export_clouds(db: DescriptorDatabase,
+                   clouds: CloudStore | None) -> dict[str, npt.NDArray[Any]]:
+    """The clouds of the stored scans, oldest first, as the three cloud arrays."""
+    seqs = range(db.oldest_seq, db.next_seq)
+    parts: list[npt.NDArray[np.float32]] = []
+    offsets = np.zeros(len(seqs) + 1, dtype=np.int64)
+    struct = np.full(len(seqs), -1, dtype=np.int32)
+    for i, seq in enumerate(seqs):
+        cloud = clouds.get(seq) if clouds is not None else None
+        offsets[i + 1] = offsets[i]
+        if cloud is not None:
+            parts.append(cloud.points)
+            offsets[i + 1] += len(cloud.points)
+            struct[i] = cloud.n_struct
+    points = (np.concatenate(parts).astype(np.float32, copy=False) if parts
+              else np.zeros((0, 3), dtype=np.float32))
+    return {'cloud_points': points, 'cloud_offsets': offsets, 'cloud_struct': struct}
 
 
 def _write_atomic(target: Path, write: Any) -> None:
@@ -390,10 +421,10 @@ def _read_meta(zf: zipfile.ZipFile, headers: dict[str, NpyHeader], p: Path) -> d
     if not isinstance(meta, dict) or meta.get('format') != FORMAT:
         fmt = meta.get('format') if isinstance(meta, dict) else None
         raise DatabaseError(f'{p} is not a solid_ros database (format {_short(repr(fmt))})')
-    if meta.get('version') != VERSION:
+    if meta.get('version') not in _READABLE:
         raise DatabaseError(f'{p} has database format version '
                             f'{_short(repr(meta.get("version")))}; this solid_ros reads '
-                            f'version {VERSION}')
+                            f'versions {", ".join(map(str, _READABLE))}')
     return meta
 
 
@@ -405,19 +436,27 @@ def _short(text: str, limit: int = 120) -> str:
 def _expected(meta: dict[str, Any], p: Path) -> dict[str, tuple[np.dtype[Any],
                                                                 tuple[int | None, ...]]]:
     sizes = {}
-    for key in ('count', 'num_range', 'num_angle'):
+    keys = ('count', 'num_range', 'num_angle') + (('cloud_points',) if meta.get('version') == 2
+                                                 else ())
+    for key in keys:
         value = meta.get(key)
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise DatabaseError(f'{p}: database metadata lacks a valid {key}: '
                                 f'{_short(repr(value))}')
         sizes[key] = value
     n, n_r, n_a = sizes['count'], sizes['num_range'], sizes['num_angle']
-    return {'r_solid': (np.dtype(np.float32), (n, n_r)),
-            'a_solid': (np.dtype(np.float32), (n, n_a)),
-            'stamps_ns': (np.dtype(np.int64), (n,)),
-            'indices': (np.dtype(np.int64), (n,)),
-            'sessions': (np.dtype(np.int32), (n,)),
-            'poses': (np.dtype(np.float32), (n, len(POSE_FIELDS)))}
+    out: dict[str, tuple[np.dtype[Any], tuple[int | None, ...]]] = {
+        'r_solid': (np.dtype(np.float32), (n, n_r)),
+        'a_solid': (np.dtype(np.float32), (n, n_a)),
+        'stamps_ns': (np.dtype(np.int64), (n,)),
+        'indices': (np.dtype(np.int64), (n,)),
+        'sessions': (np.dtype(np.int32), (n,)),
+        'poses': (np.dtype(np.float32), (n, len(POSE_FIELDS)))}
+    if 'cloud_points' in sizes:
+        out['cloud_points'] = (np.dtype(np.float32), (sizes['cloud_points'], 3))
+        out['cloud_offsets'] = (np.dtype(np.int64), (n + 1,))
+        out['cloud_struct'] = (np.dtype(np.int32), (n,))
+    return out
 
 
 def _check_arrays(p: Path, meta: dict[str, Any], arrays: dict[str, npt.NDArray[Any]]) -> None:
@@ -426,16 +465,31 @@ def _check_arrays(p: Path, meta: dict[str, Any], arrays: dict[str, npt.NDArray[A
         if arr.dtype != dtype or arr.shape != shape:
             raise DatabaseError(f'{p}: array {key!r} is {arr.dtype}{list(arr.shape)}, '
                                 f'expected {dtype}{list(shape)}')
-    for key in ('r_solid', 'a_solid'):
-        if not np.all(np.isfinite(arrays[key])):
+    for key in ('r_solid', 'a_solid', 'cloud_points'):
+        if key in arrays and not np.all(np.isfinite(arrays[key])):
             raise DatabaseError(f'{p}: array {key!r} holds NaN or infinite values')
+    if 'cloud_offsets' in arrays:
+        off, struct = arrays['cloud_offsets'], arrays['cloud_struct']
+        size = np.diff(off)
+        if (off[0] != 0 or off[-1] != len(arrays['cloud_points']) or np.any(size < 0)
+                or np.any(struct > size) or np.any((struct < 0) & (size > 0))
+                or np.any(struct < -1)):
+            raise DatabaseError(f'{p}: the keyframe cloud offsets or structure counts are '
+                                'inconsistent')
 
 
-def load_database(path: str | Path, config: SolidConfig) -> DescriptorDatabase:
+def load_database(path: str | Path, config: SolidConfig,
+                  clouds: CloudStore | None = None) -> DescriptorDatabase:
     """Load a saved database into a new one built from ``config``.
 
     The loaded scans keep their session ids and indices and are never excluded as recent;
-    the new database's own scans get ``config.session_id``.
+    the new database's own scans get ``config.session_id``. Settings a file does not name
+    (it was saved before they existed) count as their defaults.
+
+    Args:
+        path: the file.
+        config: settings of the new database.
+        clouds: store that receives the saved keyframe clouds (None: not loaded).
 
     Raises:
         DatabaseError: the file cannot be read (see :func:`read_database`), it was made with
@@ -447,6 +501,7 @@ def load_database(path: str | Path, config: SolidConfig) -> DescriptorDatabase:
     if not isinstance(saved, dict):
         raise DatabaseError(f'{path}: metadata has no shape_params')
     current = config.shape_params()
+    saved = {**SolidConfig().shape_params(), **saved}
     diffs = [f'{_short(str(k), 40)} (file {_short(repr(saved.get(k, "<absent>")), 40)}, '
              f'config {current.get(k, "<absent>")!r})'
              for k in sorted(set(saved) | set(current), key=str) if saved.get(k) != current.get(k)]
@@ -455,5 +510,12 @@ def load_database(path: str | Path, config: SolidConfig) -> DescriptorDatabase:
         raise DatabaseError(f'{path} was built with different descriptor settings: '
                             + '; '.join(diffs[:6]) + more)
     db = DescriptorDatabase(config)
+    first = db.next_seq - max(0, len(arrays['indices']) - config.capacity)
     db.import_arrays(arrays)
+    if clouds is not None and 'cloud_offsets' in arrays:
+        off, struct, pts = arrays['cloud_offsets'], arrays['cloud_struct'], arrays['cloud_points']
+        for seq in range(db.oldest_seq, db.next_seq):
+            i = seq - first
+            if struct[i] >= 0:
+                clouds.put(seq, KeyframeCloud(pts[off[i]:off[i + 1]], int(struct[i])))
     return db

@@ -67,7 +67,7 @@ def test_round_trip_gives_identical_queries(tmp_path: Path) -> None:
 def test_new_session_queries_the_saved_one(tmp_path: Path) -> None:
     from test_detector import place
 
-    cfg = SolidConfig().replace(search='brute', distance_threshold=0.02)
+    cfg = SolidConfig().replace(search='brute', distance_threshold=0.02, verify=False)
     first = LoopDetector(cfg)
     for i in range(5):
         first.process(place(i), i * SEC)
@@ -201,7 +201,7 @@ def test_crafted_metadata_is_refused(tmp_path: Path) -> None:
         'negative': (good | {'meta.npy': _meta(num_range=-40)}, 'valid num_range'),
         'meta not bytes': (good | {'meta.npy': _npy(np.zeros(3))}, 'not a solid_ros database'),
         'other format': (good | {'meta.npy': _meta(format='x' * 10_000)}, 'format'),
-        'version': (good | {'meta.npy': _meta(version=2)}, 'version 2'),
+        'version': (good | {'meta.npy': _meta(version=3)}, 'version 3'),
     }
     for name, (members, words) in cases.items():
         p = _npz(tmp_path / f'{name}.npz', members)
