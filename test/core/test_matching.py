@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from solid_ros import SolidConfig, cosine_distance, describe, estimate_yaw
+from solid_ros.core.matching import heading_hypotheses
 from solid_ros.formats.pointfiles import read_pcd
 
 
@@ -90,3 +91,57 @@ def test_heading_with_90_degree_fov(shared_data: Path, weight: str) -> None:
     cfg = SolidConfig(fov_width_deg=90.0, heading_weight=weight)
     errors = _yaw_errors(shared_data, cfg, yaws)
     assert errors.mean() < 2.0, errors
+
+
+def test_hypotheses_start_with_estimate_yaw() -> None:
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        a = rng.uniform(0, 1, 60)
+        b = np.roll(a, int(rng.integers(60))) + rng.normal(0, 0.1, 60)
+        hyps = heading_hypotheses(a, b, 5)
+        assert 1 <= len(hyps) <= 5
+        assert hyps[0][0] == estimate_yaw(a, b)
+        for yaw, cost in hyps:
+            assert -math.pi < yaw <= math.pi and 0.0 <= cost <= 4.0
+        yaws = [h[0] for h in hyps]
+        assert len(set(yaws)) == len(yaws)
+
+
+def test_hypotheses_find_both_headings_of_a_symmetric_scene() -> None:
+    # A signature that repeats every 180 degrees (a straight corridor) has two equally good
+    # headings: the best is the true one (-ish), the second 180 degrees away.
+    rng = np.random.default_rng(5)
+    half = rng.uniform(0, 1, 30)
+    a = np.concatenate([half, half]) + rng.normal(0, 0.01, 60)
+    b = np.roll(a, 7)  # candidate = query turned by +42 degrees
+    hyps = heading_hypotheses(a, b, 3)
+    degs = sorted(math.degrees(y) for y, _ in hyps[:2])
+    assert degs == pytest.approx([-138.0, 42.0], abs=0.05)  # the noise breaks the tie
+    assert hyps[1][1] < 0.05 and len(hyps) == 3 and hyps[2][1] > hyps[1][1]
+
+
+def test_hypotheses_are_sub_bin_refined() -> None:
+    # A smooth signature turned by 2.5 bins (15 degrees): linear interpolation between the
+    # neighbouring shifts recovers it exactly.
+    x = np.arange(60)
+    a = 2.0 + np.sin(2 * np.pi * x / 60) + 0.5 * np.cos(6 * np.pi * x / 60)
+    b = 0.5 * (np.roll(a, 2) + np.roll(a, 3))
+    yaw, cost = heading_hypotheses(a, b, 1)[0]
+    assert math.degrees(yaw) == pytest.approx(15.0, abs=1e-9)
+    assert cost < 1e-6  # the blend of normalised neighbours is not exactly b
+
+
+def test_hypotheses_of_degenerate_curves() -> None:
+    a = np.ones(60)
+    assert heading_hypotheses(a, a, 3) == [(0.0, 0.0)]  # flat cost: one hypothesis
+    assert heading_hypotheses(np.zeros(60), a, 3) == []
+    assert heading_hypotheses(a, a, 0) == []
+    with pytest.raises(ValueError):
+        heading_hypotheses(np.ones(60), np.ones(40), 2)
+    # A plateau through shift 0 counts once, at shift 0 (as argmin picks).
+    cost_like = np.zeros(60)
+    cost_like[0] = 1.0
+    hyps = heading_hypotheses(cost_like, np.roll(cost_like, 59), 4)
+    assert math.degrees(hyps[0][0]) == pytest.approx(-6.0)
+    assert len(hyps) == 1
+
