@@ -176,25 +176,24 @@ def _voxel_columns(cols: npt.NDArray[np.floating], leaf: float) -> FloatArray:
     return sums
 
 
-def _packed_cells(cols: npt.NDArray[np.floating], leaf: float, reach: float,
-                  drop: npt.NDArray[np.bool_] | None = None,
-                  ) -> tuple[npt.NDArray[np.int64], int] | None:
-    """Packed (cell key << idx_bits | point index) of every point in ``cols`` (3, N).
+def _cell_keys(cols: npt.NDArray[np.floating], leaf: float, reach: float,
+               drop: npt.NDArray[np.bool_] | None = None,
+               ) -> tuple[npt.NDArray[np.signedinteger[Any]], int] | None:
+    """Voxel cell key of every point in ``cols`` (3, N), and the bits the keys use.
 
     The cell bounds come from ``reach`` (the range gate) instead of the data, so the keys
     are computed once for all points and only the kept ones are then used: no copy of the
-    points themselves. Points in ``drop`` get a key above every cell's, so they sort last;
-    keys of other points beyond ``reach`` (or NaN) would be garbage. The key order is the
-    lexicographic (cx, cy, cz) order for any offset, so the cells come out in the same
-    order as :func:`_voxel_columns`. None when the cells do not fit in 62 bits.
+    points themselves. Points in ``drop`` get a key above every cell's; keys of other points
+    beyond ``reach`` (or NaN) would be garbage. Keys order the cells lexicographically by
+    (cx, cy, cz), for any offset, as :func:`_voxel_columns` does. None when the keys (and a
+    point index beside them) do not fit in 63 bits.
     """
     n = cols.shape[1]
     ws = _WS
     lo = math.floor(-reach * 1.01 / leaf) - 2  # margin for rounding of the gate and scale
     cell_bits = (2 * (-lo) + 1).bit_length()
-    idx_bits = max(int(n - 1).bit_length(), 1)
     key_bits = 3 * cell_bits + 1  # one more for the key of dropped points
-    if key_bits + idx_bits > 63:
+    if key_bits + max(int(n - 1).bit_length(), 1) > 63:
         return None
     offset = -lo * ((1 << (2 * cell_bits)) + (1 << cell_bits) + 1)  # makes every field >= 0
     # 32-bit keys when they fit (half the memory traffic), else 64-bit.
@@ -213,20 +212,55 @@ def _packed_cells(cols: npt.NDArray[np.floating], leaf: float, reach: float,
     key += offset
     if drop is not None:
         np.copyto(key, 1 << (key_bits - 1), where=drop)
-    packed = ws.get('packed', (n,), np.int64)
-    np.left_shift(key, idx_bits, out=packed, dtype=np.int64)
-    packed |= _arange(n)
-    return packed, idx_bits
+    return key, key_bits
 
 
-def _arange(n: int) -> npt.NDArray[np.int64]:
-    buf = _WS.buffers.get('arange')
-    if buf is None or buf.size < n:
-        buf = np.arange(n + n // 4, dtype=np.int64)
-        if buf.nbytes <= _MAX_CACHED_BYTES:
-            _WS.buffers['arange'] = buf
-    out: npt.NDArray[np.int64] = buf[:n]
-    return out
+def _run_centroids(cols: npt.NDArray[np.floating], key: npt.NDArray[np.signedinteger[Any]],
+                   key_bits: int, kept: int) -> FloatArray:
+    """Centroids of the cells in ``key`` (one per point of ``cols``), in key order.
+
+    Scans come ring by ring, so neighbouring points often share a cell: runs of equal keys
+    are sorted instead of points (5x fewer on KITTI), by (key, first index). Laid end to
+    end, the sorted runs list each cell's points in increasing index, which is the order in
+    which the centroid sums are taken: the same as sorting the points by (key, index). Only
+    the first ``kept`` points in that order are used (dropped points have the largest key).
+    """
+    n = key.shape[0]
+    ws = _WS
+    change = ws.get('change', (n,), np.bool_)
+    change[0] = True
+    np.not_equal(key[1:], key[:-1], out=change[1:])
+    run_start = np.flatnonzero(change)
+    runs = run_start.shape[0]
+    run_bits = max(int(runs - 1).bit_length(), 1)
+    packed = key[run_start].astype(np.int64)
+    packed <<= run_bits
+    packed |= np.arange(runs)
+    packed.sort()
+    run = packed & ((1 << run_bits) - 1)
+    packed >>= run_bits  # the sorted run keys
+    length = np.diff(np.append(run_start, n))[run]
+    start = run_start[run]
+    out_start = np.cumsum(length)
+    runs_kept = int(np.searchsorted(out_start, kept, side='left')) + 1
+    out_start -= length  # where each run begins in the sorted point order
+    # order[j] = start[r] + (j - out_start[r]) for the run r holding output position j: a
+    # cumulative sum of steps of 1 inside runs and jumps where a run begins.
+    order = ws.get('order', (kept,), np.int64)
+    order.fill(1)
+    order[0] = start[0]
+    order[out_start[1:runs_kept]] = (start[1:runs_kept] - start[:runs_kept - 1]
+                                     - length[:runs_kept - 1] + 1)
+    np.cumsum(order, out=order)
+    cell = np.empty(runs_kept, dtype=bool)
+    cell[0] = True
+    np.not_equal(packed[1:runs_kept], packed[:runs_kept - 1], out=cell[1:])
+    cell_start = out_start[:runs_kept][cell]
+    gathered = ws.get('gathered', (3, kept), cols.dtype)
+    np.take(cols, order, axis=1, out=gathered)
+    sums: FloatArray = np.add.reduceat(gathered, cell_start, axis=1, dtype=np.float64)
+    sums /= np.diff(np.append(cell_start, kept))
+    return sums
 
 
 def voxel_downsample(xyz: npt.ArrayLike, leaf: float) -> FloatArray:
@@ -375,25 +409,21 @@ def _preprocess_columns(points: npt.ArrayLike, config: SolidConfig) -> FloatArra
         return np.zeros((3, 0))
     leaf = config.voxel_size
     if leaf > 0.0 and 2 * kept >= n:
-        # Most points pass: key every point in place, dropped ones last, and sort once.
+        # Most points pass: key every point in place, dropped ones last.
         drop = ws.get('drop', (n,), np.bool_)
         np.logical_not(keep, out=drop)
-        found = _packed_cells(cols, leaf, config.max_range, drop)
+        found = _cell_keys(cols, leaf, config.max_range, drop)
         if found is not None:
-            packed, idx_bits = found
-            packed.sort()
-            return _group_centroids(cols, packed[:kept], idx_bits)
+            return _run_centroids(cols, *found, kept)
     # Few points pass (narrow FOV), or cells too many to pack: copy the kept points first.
     sub = ws.get('sub', (3, kept), cols.dtype)
     np.compress(keep, cols, axis=1, out=sub)
     if leaf <= 0.0:
         return sub.astype(np.float64)
-    found = _packed_cells(sub, leaf, config.max_range)
+    found = _cell_keys(sub, leaf, config.max_range)
     if found is None:
         return _voxel_columns(sub.copy(), leaf)
-    packed, idx_bits = found
-    packed.sort()
-    return _group_centroids(sub, packed, idx_bits)
+    return _run_centroids(sub, *found, kept)
 
 
 def preprocess(points: npt.ArrayLike, config: SolidConfig) -> FloatArray:
