@@ -133,7 +133,8 @@ def test_hypotheses_are_sub_bin_refined() -> None:
 
 def test_hypotheses_of_degenerate_curves() -> None:
     a = np.ones(60)
-    assert heading_hypotheses(a, a, 3) == [(0.0, 0.0)]  # flat cost: one hypothesis
+    flat = heading_hypotheses(a, a, 3)  # flat cost: one hypothesis
+    assert len(flat) == 1 and flat[0] == pytest.approx((0.0, 0.0), abs=1e-12)
     assert heading_hypotheses(np.zeros(60), a, 3) == []
     assert heading_hypotheses(a, a, 0) == []
     with pytest.raises(ValueError):
@@ -145,3 +146,26 @@ def test_hypotheses_of_degenerate_curves() -> None:
     assert math.degrees(hyps[0][0]) == pytest.approx(-6.0)
     assert len(hyps) == 1
 
+
+
+def test_yaw_agrees_with_the_direct_squared_difference_search() -> None:
+    # The correlation form of the cost must pick the shift and fraction the definition does:
+    # the squared difference of the normalised signatures, neighbours blended.
+    rng = np.random.default_rng(8)
+    idx = (np.arange(60)[None, :] - np.arange(60)[:, None]) % 60
+    for _ in range(300):
+        a = rng.uniform(0, 1, 60) ** 3
+        b = np.roll(a, int(rng.integers(60))) + rng.normal(0, 0.05, 60)
+        u = (a / np.linalg.norm(a))[idx]
+        v = b / np.linalg.norm(b)
+        cost = ((u - v) ** 2).sum(axis=1)
+        s = int(np.argmin(cost))
+        best, frac = cost[s], 0.0
+        for step in (1, -1):
+            d = u[(s + step) % 60] - u[s]
+            f = min(max(float((v - u[s]) @ d) / float(d @ d), 0.0), 1.0)
+            if cost[s] - f * f * float(d @ d) < best:
+                best, frac = cost[s] - f * f * float(d @ d), step * f
+        want = math.radians(math.remainder((s + frac) * 6.0, 360.0))
+        assert angle_error_deg(estimate_yaw(a, b), want) < 1e-9
+        assert heading_hypotheses(a, b, 1)[0][1] == pytest.approx(best, abs=1e-12)
