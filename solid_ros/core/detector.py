@@ -197,7 +197,8 @@ class LoopDetector:
             self.last_best = LoopCandidate(
                 query_index=q_index, match_index=top.index, query_stamp_ns=stamp,
                 match_stamp_ns=top.stamp_ns, match_session=top.session, distance=top.distance,
-                yaw=estimate_yaw(desc.heading, self.database.a_solid(top.seq)),
+                yaw=estimate_yaw(desc.heading, self.database.a_solid(top.seq),
+                                 cfg.heading_match),
                 margin=min((o.distance for o in hits if not same_place(o, top)),
                            default=math.inf) - top.distance)
         if (cfg.min_loop_gap and self._last_loop_query is not None
@@ -220,7 +221,8 @@ class LoopDetector:
         return [LoopCandidate(query_index=q_index, match_index=h.index, query_stamp_ns=stamp,
                               match_stamp_ns=h.stamp_ns, match_session=h.session,
                               distance=h.distance,
-                              yaw=estimate_yaw(desc.heading, self.database.a_solid(h.seq)),
+                              yaw=estimate_yaw(desc.heading, self.database.a_solid(h.seq),
+                                               cfg.heading_match),
                               margin=margin)
                 for h, margin in taken]
 

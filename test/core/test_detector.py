@@ -186,3 +186,21 @@ def test_hku1_revisit_is_found(shared_data: Path) -> None:
     assert correct, f'no correct candidate in the revisit: {loop}'
     assert all(c.match_index < 60 for c in correct)
     assert len(correct) >= 0.9 * len(loop)
+
+
+def test_heading_match_is_runtime_tunable_and_used_for_the_yaw() -> None:
+    from solid_ros.core.descriptor import describe
+    from solid_ros.core.matching import estimate_yaw
+    cfg = _cfg(fov_width_deg=90.0, exclude_recent_frames=0)
+    stored, query = place(1), rotz(place(1), 50.0)
+    results = {}
+    for mode in ('full', 'overlap'):
+        det = LoopDetector(cfg)
+        det.process(stored, 0)
+        det.reconfigure(cfg.replace(heading_match=mode))  # not read-only
+        det.process(query, SEC)
+        assert det.last_best is not None and det.last_best.match_index == 0
+        results[mode] = det.last_best.yaw
+        want = estimate_yaw(describe(query, cfg).heading, describe(stored, cfg).heading, mode)
+        assert results[mode] == pytest.approx(want, abs=1e-6)  # stored as float32
+    assert results['full'] != pytest.approx(results['overlap'], abs=1e-6)
