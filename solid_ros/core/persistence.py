@@ -2,7 +2,7 @@
 
 File layout (``numpy.savez``, no pickled objects; loaded with ``allow_pickle=False``):
 
-- ``meta``: UTF-8 JSON as a uint8 array: ``format`` (``'solid_ros.core.database'``), ``version``,
+- ``meta``: UTF-8 JSON as a uint8 array: ``format`` (``'solid_ros.database'``), ``version``,
   ``count``, ``shape_params`` (every setting that changes descriptor values), ``fingerprint``,
   ``sessions`` (the session ids held).
 - ``r_solid`` (n, N_r) float32, unit-normalised (all-zero rows for empty scans);
@@ -34,7 +34,7 @@ from solid_ros.core.errors import DatabaseError
 
 __all__ = ['FORMAT', 'VERSION', 'load_database', 'read_database', 'save_database']
 
-FORMAT = 'solid_ros.core.database'
+FORMAT = 'solid_ros.database'
 VERSION = 1
 
 _READ_ERRORS = (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile,
