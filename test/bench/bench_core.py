@@ -192,14 +192,15 @@ def _rounds(args: argparse.Namespace, exe: Path | None, scan: np.ndarray, other:
     def med(rows: list[dict[str, float]], key: str) -> float:
         return float(np.median([row[key] for row in rows]))
 
-    print(f'\nPython medians over {args.rounds} rounds: describe 360 deg {med(py_all, "cpu_360"):.2f}'
-          f' ms CPU, 60 deg {med(py_all, "cpu_60"):.2f} ms, distance + heading '
-          f'{med(py_all, "pair") * 1e3:.1f} us')
+    print(f'\nPython medians over {args.rounds} rounds: describe 360 deg '
+          f'{med(py_all, "cpu_360"):.2f} ms CPU, 60 deg {med(py_all, "cpu_60"):.2f} ms, '
+          f'distance + heading {med(py_all, "pair") * 1e3:.1f} us')
     if exe is None:
         return 0
-    print(f'C++ medians: gate {med(cpp_all, "cpu_gate"):.2f} + voxel {med(cpp_all, "cpu_voxel"):.2f}'
-          f' + descriptor {med(cpp_all, "cpu_desc"):.2f} = {med(cpp_all, "cpu_total"):.2f} ms CPU;'
-          f' on the 60-degree clip {med(cpp_all, "cpu_total_60"):.2f} ms; distance + heading '
+    print(f'C++ medians: gate {med(cpp_all, "cpu_gate"):.2f} + voxel '
+          f'{med(cpp_all, "cpu_voxel"):.2f} + descriptor {med(cpp_all, "cpu_desc"):.2f} = '
+          f'{med(cpp_all, "cpu_total"):.2f} ms CPU; on the 60-degree clip '
+          f'{med(cpp_all, "cpu_total_60"):.2f} ms; distance + heading '
           f'{med(cpp_all, "pair") * 1e3:.1f} us')
     print("\nRatio Python / authors' C++ (median of the per-round ratios; lower is faster):")
     rows = [
@@ -214,7 +215,8 @@ def _rounds(args: argparse.Namespace, exe: Path | None, scan: np.ndarray, other:
     for label, key, goal in rows:
         value = float(np.median(ratios[key]))
         spread = f'{min(ratios[key]):.2f}-{max(ratios[key]):.2f}'
-        verdict = '' if goal is None else f'  goal <= {goal}: {"met" if value <= goal else "NOT met"}'
+        verdict = '' if goal is None else (
+            f'  goal <= {goal}: {"met" if value <= goal else "NOT met"}')
         print(f'  {label:58s} {value:5.2f}x  (rounds {spread}){verdict}')
     return 0
 
