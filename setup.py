@@ -14,9 +14,9 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')),
     ],
     python_requires='>=3.10',
-    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'matplotlib'],
+    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'mcap', 'matplotlib'],
     extras_require={
-        'test': ['pytest', 'ruff', 'mypy', 'types-PyYAML', 'mcap'],
+        'test': ['pytest', 'ruff', 'mypy', 'types-PyYAML'],
         # ROS 2 Jazzy client libraries from PyPI, for machines without a ROS install.
         'ros-pypi': ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces',
                      'ros-jazzy-rmw-fastrtps-cpp', 'colcon-common-extensions'],

@@ -12,6 +12,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +20,8 @@ from typing import Any, ClassVar, TypeVar
 
 from solid_ros.core.errors import ConfigError
 
-__all__ = ['ParamSpec', 'SolidConfig', 'NodeConfig', 'load_yaml_parameters', 'param_specs']
+__all__ = ['ParamSpec', 'SolidConfig', 'NodeConfig', 'check_parameters', 'load_parameter_file',
+           'load_yaml_parameters', 'param_specs', 'type_message']
 
 _C = TypeVar('_C', bound='_Schema')
 
@@ -107,7 +109,7 @@ class _Schema:
         if strict:
             known = names | _all_names() | _ROS_STANDARD_KEYS
             for key in values:
-                if key not in known:
+                if key not in known and not key.startswith('qos_overrides.'):
                     raise ConfigError(f'unknown parameter {key!r}')
         return cls(**{k: v for k, v in values.items() if k in names})
 
@@ -120,9 +122,10 @@ class _Schema:
             node_name: node whose block is read; ``/**`` wildcard blocks also apply.
 
         Raises:
-            ConfigError: the file is unreadable, malformed, or holds an invalid value.
+            ConfigError: the file is unreadable, malformed, or holds an invalid value (the
+                node's rule: see :func:`load_parameter_file`).
         """
-        return cls.from_dict(load_yaml_parameters(path, node_name))
+        return cls.from_dict(load_parameter_file(path, node_name))
 
 
 def _coerce(spec: ParamSpec, value: Any) -> Any:
@@ -266,7 +269,8 @@ class NodeConfig(_Schema):
                                    low=0.0, high=10.0)
     queue_size: int = _p(2, 'Clouds waiting for processing; the oldest is dropped beyond '
                          'this', low=1, high=1000, read_only=True)
-    database_save_path: str = _p('', 'File written by ~/save_database (empty = disabled)')
+    database_save_path: str = _p('', 'File written by ~/save_database (empty = disabled; never '
+                                 'replaces a non-database)', read_only=True)
     database_load_path: str = _p('', 'Saved database loaded at start (empty = none)',
                                  read_only=True)
     diagnostics_period_sec: float = _p(1.0, 'Period of /diagnostics messages', low=0.05,
@@ -285,35 +289,143 @@ def _all_names() -> set[str]:
 def load_yaml_parameters(path: str | Path, node_name: str = 'solid_node') -> dict[str, Any]:
     """Read the merged ``ros__parameters`` of ``node_name`` (and ``/**``) from a YAML file.
 
+    Blocks apply as rcl applies them: a key names a node relative to the root namespace
+    (``solid_node``, ``/solid_node``, nested ``ns: solid_node:``) or matches it with the
+    wildcards ``*`` (one name) and ``**`` (any names), e.g. ``/**``. Values are returned
+    as written; :func:`check_parameters` validates them.
+
+    Args:
+        path: the parameter file.
+        node_name: node name or fully qualified name (``/ns/name``).
+
     Raises:
-        ConfigError: the file is missing, not YAML, or not in ROS 2 parameter layout.
+        ConfigError: one line naming the file: missing or unreadable, not UTF-8 text, not
+            YAML, not in ROS 2 parameter layout, or without a block for the node.
     """
     import yaml
 
     try:
-        text = Path(path).read_text(encoding='utf-8')
+        blob = Path(path).read_bytes()
     except OSError as err:
-        raise ConfigError(f'cannot read parameter file {path}: {err.strerror}') from err
+        raise ConfigError(f'{path}: cannot read parameter file: {err.strerror or err}') from err
+    try:
+        text = blob.decode('utf-8')
+    except UnicodeDecodeError as err:
+        raise ConfigError(f'{path}: not a parameter file: byte 0x{blob[err.start]:02x} at '
+                          f'offset {err.start} is not UTF-8 text') from err
     try:
         doc = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ConfigError(f'{path} is not valid YAML: {err}') from err
+    except RecursionError as err:
+        raise ConfigError(f'{path}: not valid YAML: nested too deeply') from err
+    except (yaml.YAMLError, ValueError, TypeError, OverflowError) as err:
+        # PyYAML raises more than YAMLError for odd scalars (dates) and deep nesting.
+        where = ' '.join(str(err).replace(' in "<unicode string>",', '').split())
+        raise ConfigError(f'{path}: not valid YAML: {_shorten(where)}') from err
     if not isinstance(doc, dict):
-        raise ConfigError(f'{path}: expected "<node>: ros__parameters:" at the top level')
+        kind = 'empty' if doc is None else f'a YAML {type(doc).__name__}'
+        raise ConfigError(f'{path}: expected "<node>: ros__parameters:" at the top level, '
+                          f'the file is {kind}')
+    fqn = '/' + node_name.strip('/')
     params: dict[str, Any] = {}
-    wanted = {'/**', node_name, '/' + node_name.lstrip('/')}
     found = False
-    for key, block in doc.items():
-        if str(key) not in wanted:
+    names = []
+    for name, block in _node_blocks(doc):
+        names.append(name)
+        if not _name_matches(name, fqn):
             continue
         if not isinstance(block, dict) or not isinstance(block.get('ros__parameters'), dict):
-            raise ConfigError(f'{path}: block {key!r} has no ros__parameters mapping')
+            raise ConfigError(f'{path}: block {name!r} has no ros__parameters mapping')
         params.update(_flatten(block['ros__parameters']))
         found = True
     if not found:
-        raise ConfigError(f'{path}: no ros__parameters block for node {node_name!r} '
-                          f'(blocks: {", ".join(map(str, doc)) or "none"})')
+        raise ConfigError(f'{path}: no ros__parameters block for node {fqn!r} '
+                          f'(blocks: {", ".join(names[:10]) or "none"})')
     return params
+
+
+def check_parameters(values: Mapping[str, Any], source: str | Path | None = None) -> None:
+    """Check parameter values as the node receives them from a file or the command line.
+
+    Stricter than keyword construction: like ROS 2, an integer is refused for a
+    floating-point setting (``90`` for ``fov_width_deg``) and a float for an integer one.
+    Cross-setting rules are left to the configuration classes (other files may complete them).
+
+    Raises:
+        ConfigError: unknown key, wrong type or value out of range; prefixed with ``source``.
+    """
+    specs = {s.name: s for s in param_specs()}
+    prefix = f'{source}: ' if source is not None else ''
+    for key, value in values.items():
+        spec = specs.get(key)
+        if spec is None:
+            if key in _ROS_STANDARD_KEYS or key.startswith('qos_overrides.'):
+                continue
+            raise ConfigError(f'{prefix}unknown parameter {key!r} (see config/solid.yaml for '
+                              'the valid names)')
+        wrong_number = (spec.type is float and isinstance(value, int)
+                        and not isinstance(value, bool)) or (
+            spec.type is int and isinstance(value, float))
+        try:
+            if wrong_number:
+                raise ConfigError(type_message(spec, value))
+            _coerce(spec, value)
+        except ConfigError as err:
+            raise ConfigError(f'{prefix}{err}') from err
+
+
+def load_parameter_file(path: str | Path, node_name: str = 'solid_node') -> dict[str, Any]:
+    """:func:`load_yaml_parameters` then :func:`check_parameters`: the node's and the offline
+    tools' one rule for a parameter file.
+
+    Raises:
+        ConfigError: one line naming the file and the problem.
+    """
+    values = load_yaml_parameters(path, node_name)
+    check_parameters(values, path)
+    return values
+
+
+_TYPE_WORDS = {bool: 'true or false', int: 'an integer', float: 'a floating-point number',
+               str: 'a string'}
+
+
+def type_message(spec: ParamSpec, value: Any) -> str:
+    """The message for a value of the wrong type (same words for node, files and tools)."""
+    msg = (f'{spec.name}: expected {_TYPE_WORDS[spec.type]} in {spec.range_text()}, '
+           f'got {value!r}')
+    if spec.type is float and isinstance(value, int) and not isinstance(value, bool):
+        msg += f' (write {float(value)!r}: ROS 2 rejects an integer for a double parameter)'
+    return msg
+
+
+def _shorten(text: str) -> str:
+    return text if len(text) <= 300 else text[:297] + '...'
+
+
+def _node_blocks(doc: Mapping[Any, Any], prefix: str = '') -> list[tuple[str, Any]]:
+    """``(name, block)`` for every node block; nested namespace mappings are joined by '/'."""
+    out: list[tuple[str, Any]] = []
+    for key, value in doc.items():
+        name = f'{prefix}/{str(key).strip("/")}'
+        if isinstance(value, dict) and 'ros__parameters' not in value and value and all(
+                isinstance(v, dict) for v in value.values()):
+            out.extend(_node_blocks(value, name))  # a namespace level
+        else:
+            out.append((name, value))
+    return out
+
+
+def _name_matches(pattern: str, fqn: str) -> bool:
+    """rcl's node-name wildcards: ``**`` spans any names (also none), ``*`` one name."""
+    if '*' not in pattern:
+        return pattern == fqn
+    rx = ''
+    for token in pattern.strip('/').split('/'):
+        if token == '**':
+            rx += '(?:/[^/]+)*'
+        else:
+            rx += '/' + '[^/]*'.join(re.escape(t) for t in token.split('*'))
+    return re.fullmatch(rx, fqn) is not None
 
 
 def _flatten(block: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:

@@ -1,8 +1,9 @@
 """Rolling store of SOLiD descriptors with exact nearest-neighbour search by cosine distance.
 
-Storage is a ring buffer of preallocated arrays (zero-filled, so the operating system maps the
-pages only when they are written): unit-normalised R-SOLiD and A-SOLiD as float32, stamps,
-per-session indices, session ids and an optional pose per scan. Every stored scan also has a
+Storage is a ring buffer of arrays: unit-normalised R-SOLiD and A-SOLiD as float32, stamps,
+per-session indices, session ids and an optional pose per scan. The arrays start small and
+double as scans arrive (amortised O(1) per insert) until they hold ``capacity`` rows; only then
+does the ring wrap, so growing never moves a scan to another slot. Every stored scan also has a
 sequence number ``seq`` (0, 1, 2, ... in insertion order, loaded scans first); its slot in the
 arrays is ``seq % capacity`` and the live scans are the last ``size`` sequence numbers.
 
@@ -36,6 +37,8 @@ POSE_FIELDS = ('x', 'y', 'z', 'qx', 'qy', 'qz', 'qw')
 # indexed / _TAIL_DIVISOR): a rebuild costs O(n log n), so a tail growing with n keeps the
 # amortised insert cost O(log n) while the exact tail search stays a small fraction of n.
 _TAIL_DIVISOR = 16
+# Rows allocated at first; the arrays double from here up to ``capacity``.
+_INITIAL_ROWS = 1024
 _HAS_R = np.uint8(1)
 _HAS_POSE = np.uint8(2)
 
@@ -71,7 +74,7 @@ def unit_vector(v: npt.ArrayLike) -> tuple[npt.NDArray[np.float64], bool]:
 
 
 class DescriptorDatabase:
-    """Fixed-capacity ring of descriptors; the oldest scan is evicted when it is full.
+    """Ring of at most ``capacity`` descriptors; the oldest scan is evicted when it is full.
 
     Args:
         config: settings; reads ``capacity``, ``search``, ``kdtree_rebuild_every``,
@@ -85,13 +88,14 @@ class DescriptorDatabase:
         self.session_id = config.session_id
         self.num_range = config.num_range
         self.num_angle = config.num_angle
-        self._r = np.zeros((cap, self.num_range), dtype=np.float32)
-        self._a = np.zeros((cap, self.num_angle), dtype=np.float32)
-        self._stamp = np.zeros(cap, dtype=np.int64)
-        self._index = np.zeros(cap, dtype=np.int64)
-        self._session = np.zeros(cap, dtype=np.int32)
-        self._pose = np.zeros((cap, len(POSE_FIELDS)), dtype=np.float32)
-        self._flags = np.zeros(cap, dtype=np.uint8)
+        rows = min(cap, _INITIAL_ROWS)
+        self._r = np.zeros((rows, self.num_range), dtype=np.float32)
+        self._a = np.zeros((rows, self.num_angle), dtype=np.float32)
+        self._stamp = np.zeros(rows, dtype=np.int64)
+        self._index = np.zeros(rows, dtype=np.int64)
+        self._session = np.zeros(rows, dtype=np.int32)
+        self._pose = np.zeros((rows, len(POSE_FIELDS)), dtype=np.float32)
+        self._flags = np.zeros(rows, dtype=np.uint8)
         # Stored vector for an all-zero R-SOLiD: the farthest possible from every
         # non-negative unit query, so it never crowds the top k.
         self._sentinel = np.full(self.num_range, -1.0 / math.sqrt(self.num_range), np.float32)
@@ -126,17 +130,43 @@ class DescriptorDatabase:
         """Sequence number the next added scan gets."""
         return self._next
 
-    @property
-    def nbytes(self) -> int:
-        """Bytes held by the preallocated storage (the kd-tree's copy excluded)."""
-        arrays = (self._r, self._a, self._stamp, self._index, self._session, self._pose,
-                  self._flags)
-        return sum(a.nbytes for a in arrays)
+    def _arrays(self) -> tuple[npt.NDArray[np.generic], ...]:
+        return (self._r, self._a, self._stamp, self._index, self._session, self._pose,
+                self._flags)
 
     @property
-    def bytes_per_scan(self) -> float:
-        """Storage bytes per stored scan: ``nbytes / capacity``."""
-        return self.nbytes / self.capacity
+    def allocated(self) -> int:
+        """Rows allocated now (grows by doubling up to ``capacity``)."""
+        return len(self._flags)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the allocated arrays hold (the kd-tree's copy excluded)."""
+        return sum(a.nbytes for a in self._arrays())
+
+    @property
+    def bytes_per_scan(self) -> int:
+        """Storage bytes of one scan (one row of every array)."""
+        return sum(a.itemsize * math.prod(a.shape[1:]) for a in self._arrays())
+
+    @property
+    def stored_bytes(self) -> int:
+        """Bytes the stored scans use: ``size * bytes_per_scan``."""
+        return self._size * self.bytes_per_scan
+
+    def _reserve(self, rows: int) -> None:
+        """Grow the arrays to hold at least ``rows`` (<= capacity) rows, doubling."""
+        have = self.allocated
+        if rows <= have:
+            return
+        new = min(self.capacity, max(rows, 2 * have))
+        grown = []
+        for a in self._arrays():
+            b = np.zeros((new, *a.shape[1:]), dtype=a.dtype)
+            b[:have] = a
+            grown.append(b)
+        (self._r, self._a, self._stamp, self._index, self._session, self._pose,
+         self._flags) = grown
 
     def slot(self, seq: int) -> int:
         """Array slot of a stored scan."""
@@ -200,6 +230,7 @@ class DescriptorDatabase:
             raise DatabaseError(f'descriptor shape ({r.shape[0]}, {a.shape[0]}) does not match '
                                 f'the database ({self.num_range}, {self.num_angle})')
         s = self._next % self.capacity
+        self._reserve(s + 1)
         r_unit, has_r = unit_vector(r)
         a_unit, _ = unit_vector(a)
         flags = _HAS_R if has_r else np.uint8(0)
@@ -411,6 +442,7 @@ class DescriptorDatabase:
         first = max(0, n - self.capacity)
         count = n - first
         slots = np.arange(self._next, self._next + count) % self.capacity
+        self._reserve(min(self.capacity, self._next + count))
         r_unit, has_r = _unit_rows(np.asarray(arrays['r_solid'])[first:])
         r_unit[~has_r] = self._sentinel
         a_unit, _ = _unit_rows(np.asarray(arrays['a_solid'])[first:])

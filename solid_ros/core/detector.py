@@ -30,11 +30,24 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import DescriptorDatabase, Match
 from solid_ros.core.descriptor import Descriptor, describe
-from solid_ros.core.errors import ConfigError
+from solid_ros.core.errors import ConfigError, SolidError
 from solid_ros.core.geometry import pose_to_vector, rotation_deg
 from solid_ros.core.matching import estimate_yaw
 
 __all__ = ['LoopCandidate', 'LoopDetector']
+
+_INT64 = (-(2**63), 2**63 - 1)
+
+
+def _stamp(stamp_ns: Any) -> int:
+    """The stamp as an int that the database's int64 arrays hold, else SolidError."""
+    try:
+        stamp = int(stamp_ns)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise SolidError(f'stamp {stamp_ns!r} is not an integer number of nanoseconds') from err
+    if not _INT64[0] <= stamp <= _INT64[1]:
+        raise SolidError(f'stamp {stamp} ns is outside the int64 range')
+    return stamp
 
 
 @dataclass(frozen=True)
@@ -158,9 +171,9 @@ class LoopDetector:
             Accepted loop candidates, best first (empty for a gated-out scan).
 
         Raises:
-            SolidError: malformed points or pose.
+            SolidError: malformed points, pose or stamp (outside int64).
         """
-        stamp = int(stamp_ns)
+        stamp = _stamp(stamp_ns)
         vec = pose_to_vector(pose) if pose is not None else None
         if not self.is_keyframe(stamp, vec):
             self.last_was_keyframe = False
@@ -171,7 +184,7 @@ class LoopDetector:
     def process_descriptor(self, desc: Descriptor, stamp_ns: int,
                            pose: Any = None) -> list[LoopCandidate]:
         """Like :meth:`process` for an already computed descriptor, without gating."""
-        stamp = int(stamp_ns)
+        stamp = _stamp(stamp_ns)
         vec = pose_to_vector(pose) if pose is not None else None
         out = self._query(desc, stamp)
         self.database.add(desc.r_solid, desc.heading, stamp, vec)

@@ -10,20 +10,34 @@ File layout (``numpy.savez``, no pickled objects; loaded with ``allow_pickle=Fal
   int64 (index of the scan within its session); ``sessions`` (n,) int32; ``poses`` (n, 7)
   float32 ``x y z qx qy qz qw`` (NaN rows where the scan had no pose). Rows are oldest first.
 
+Reading checks every array's dtype and shape in its ``.npy`` header, and the header against the
+archive member's size, before any array is read (:func:`read_npz_headers`), so a crafted file is
+refused before it can make the loader allocate memory; a file that is not such an archive is
+named as not a solid_ros database.
+
 Writing goes to a temporary file in the target directory, which is flushed, fsynced and then
 renamed over the target, so a crash leaves either the old file or the new one, never a torn one.
+The target must be absent or a regular file holding a solid_ros database: a symbolic link, a
+device, a directory or any other file is never replaced (:func:`check_save_target`). The
+temporary file is locked while it is written; one left by a killed save is removed by the next
+save of the same target (:func:`remove_stale_temporaries`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
+import math
 import os
+import re
+import stat
 import tempfile
 import zipfile
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -32,13 +46,21 @@ from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import POSE_FIELDS, DescriptorDatabase
 from solid_ros.core.errors import DatabaseError
 
-__all__ = ['FORMAT', 'VERSION', 'load_database', 'read_database', 'save_database']
+__all__ = ['FORMAT', 'VERSION', 'NpyHeader', 'check_save_target', 'is_database',
+           'load_database', 'read_database', 'read_npz_headers', 'remove_stale_temporaries',
+           'save_database']
 
 FORMAT = 'solid_ros.database'
 VERSION = 1
 
 _READ_ERRORS = (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile,
-                zlib.error, UnicodeDecodeError)
+                zlib.error, UnicodeDecodeError, RecursionError, OverflowError, MemoryError,
+                NotImplementedError)  # zipfile: unknown compression or 'zip file version'
+# The metadata is a few settings and session ids; an .npy header is a short dict literal.
+_MAX_META_BYTES = 1 << 20
+_MAX_NPY_HEADER = 10_000
+_NPY_MAGIC = b'\x93NUMPY'
+_ZIP_MAGICS = (b'PK\x03\x04', b'PK\x05\x06')
 
 
 def save_database(db: DescriptorDatabase, path: str | Path) -> Path:
@@ -55,23 +77,41 @@ def save_database(db: DescriptorDatabase, path: str | Path) -> Path:
         DatabaseError: the file cannot be written (the message names it and the reason).
     """
     target = Path(path)
+    check_save_target(target)
+    remove_stale_temporaries(target)
     arrays: dict[str, Any] = db.export_arrays()
     meta = {'format': FORMAT, 'version': VERSION, 'count': int(len(arrays['indices'])),
             'num_range': db.num_range, 'num_angle': db.num_angle,
             'shape_params': db.config.shape_params(), 'fingerprint': db.config.fingerprint(),
             'sessions': sorted({int(s) for s in arrays['sessions']})}
     arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
+    _write_atomic(target, lambda f: np.savez(f, **arrays))
+    return target
+
+
+def _write_atomic(target: Path, write: Any) -> None:
+    """Write through ``write(file)`` to a locked temporary file, then rename it over ``target``.
+
+    The lock tells :func:`remove_stale_temporaries` that the file is in use; it is held until
+    the rename is done.
+
+    Raises:
+        DatabaseError: the file cannot be written, or ``target`` changed into something that
+            must not be replaced meanwhile.
+    """
     tmp_name = ''
     try:
-        directory = target.resolve().parent
+        directory = target.parent.resolve()  # not target.resolve(): never follow a link
         fd, tmp_name = tempfile.mkstemp(prefix=f'.{target.name}.', suffix='.tmp',
                                         dir=directory)
         with os.fdopen(fd, 'wb') as f:
-            np.savez(f, **arrays)
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp_name, target)
-        tmp_name = ''
+            check_save_target(target)  # again, just before replacing it
+            os.replace(tmp_name, target)
+            tmp_name = ''
         _fsync_dir(directory)
     except OSError as err:
         raise DatabaseError(f'cannot write database {target}: {err.strerror or err}') from err
@@ -79,7 +119,76 @@ def save_database(db: DescriptorDatabase, path: str | Path) -> Path:
         if tmp_name:
             with contextlib.suppress(OSError):
                 os.unlink(tmp_name)
-    return target
+
+
+def check_save_target(path: str | Path) -> None:
+    """Refuse a save target that is not absent or a regular solid_ros database file.
+
+    Raises:
+        DatabaseError: ``path`` is a symbolic link, a device, a directory or another
+            non-regular file, or a regular file that is not a solid_ros database.
+    """
+    target = Path(path)
+    try:
+        st = os.lstat(target)
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise DatabaseError(f'cannot check database target {target}: '
+                            f'{err.strerror or err}') from err
+    if stat.S_ISLNK(st.st_mode):
+        raise DatabaseError(f'{target} is a symbolic link; a database is never written through '
+                            'a link: give the real path')
+    if not stat.S_ISREG(st.st_mode):
+        raise DatabaseError(f'{target} exists and is not a regular file; it is not replaced by '
+                            'a database')
+    if not is_database(target):
+        raise DatabaseError(f'{target} exists and is not a solid_ros database; it is not '
+                            'replaced (remove it or save elsewhere)')
+
+
+def is_database(path: str | Path) -> bool:
+    """Whether ``path`` is a regular file holding a solid_ros database (any version)."""
+    try:
+        with _open_archive(Path(path)) as zf:
+            meta = _read_meta(zf, read_npz_headers(zf, Path(path)), Path(path))
+    except (DatabaseError, *_READ_ERRORS):
+        return False
+    return meta.get('format') == FORMAT
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Remove temporary files that killed saves of ``path`` left behind.
+
+    Only files named like this module's temporaries of ``path`` are considered, and only
+    those no live save holds locked.
+
+    Returns:
+        The files removed.
+    """
+    target = Path(path)
+    pattern = re.compile(re.escape(f'.{target.name}.') + r'[a-z0-9_]{8}\.tmp')
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(target.parent))
+    except OSError:
+        return removed
+    for entry in entries:
+        if not pattern.fullmatch(entry.name) or not entry.is_file(follow_symlinks=False):
+            continue
+        try:
+            fd = os.open(entry.path, os.O_RDWR | os.O_NOFOLLOW)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.unlink(entry.path)
+            removed.append(Path(entry.path))
+        except OSError:
+            continue  # a save in progress holds the lock
+        finally:
+            os.close(fd)
+    return removed
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -99,6 +208,9 @@ def _fsync_dir(directory: Path) -> None:
 def read_database(path: str | Path) -> tuple[dict[str, Any], dict[str, npt.NDArray[Any]]]:
     """Read and validate a saved database without checking it against a configuration.
 
+    Every array's header is checked against the metadata and the archive before any array is
+    read (see the module docstring).
+
     Returns:
         ``(meta, arrays)`` with the keys described in the module docstring.
 
@@ -108,40 +220,198 @@ def read_database(path: str | Path) -> tuple[dict[str, Any], dict[str, npt.NDArr
     """
     p = Path(path)
     try:
-        loaded = np.load(p, allow_pickle=False)
-        if not isinstance(loaded, np.lib.npyio.NpzFile):
-            raise DatabaseError(f'{p} is a single .npy array, not a solid_ros database')
-        with loaded as npz:
-            if 'meta' not in npz.files:
-                raise DatabaseError(f'{p} is not a solid_ros database (no "meta" entry)')
-            meta = json.loads(npz['meta'].tobytes().decode('utf-8'))
-            if not isinstance(meta, dict) or meta.get('format') != FORMAT:
-                raise DatabaseError(f'{p} is not a solid_ros database (format '
-                                    f'{meta.get("format") if isinstance(meta, dict) else None!r})')
-            if meta.get('version') != VERSION:
-                raise DatabaseError(f'{p} has database format version {meta.get("version")!r}; '
-                                    f'this solid_ros reads version {VERSION}')
-            missing = [k for k in _expected(meta) if k not in npz.files]
-            if missing:
-                raise DatabaseError(f'{p} is incomplete: missing array {missing[0]!r}')
-            arrays = {k: npz[k] for k in _expected(meta)}
+        with _open_archive(p) as zf:
+            headers = read_npz_headers(zf, p)
+            meta = _read_meta(zf, headers, p)
+            expected = _expected(meta, p)
+            check_headers(p, headers, expected)
+            arrays = {k: _read_array(zf, headers[k]) for k in expected}
     except DatabaseError:
         raise
     except FileNotFoundError as err:
         raise DatabaseError(f'database file {p} does not exist') from err
     except _READ_ERRORS as err:
         raise DatabaseError(f'{p} is not a readable solid_ros database (truncated, corrupt or '
-                            f'another kind of file): {type(err).__name__}: {err}') from err
+                            f'another kind of file): {type(err).__name__}: '
+                            f'{_short(str(err))}') from err
     _check_arrays(p, meta, arrays)
     return meta, arrays
 
 
-def _expected(meta: dict[str, Any]) -> dict[str, tuple[np.dtype[Any], tuple[int, ...]]]:
+@dataclass(frozen=True)
+class NpyHeader:
+    """The header of one ``.npy`` member of an ``.npz`` archive.
+
+    Attributes:
+        member: archive member name (``key + '.npy'``).
+        dtype: array dtype.
+        shape: array shape.
+        fortran_order: whether the data is in Fortran order.
+        data_offset: where the data starts within the member.
+    """
+
+    member: str
+    dtype: np.dtype[Any]
+    shape: tuple[int, ...]
+    fortran_order: bool
+    data_offset: int
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the array data takes (exact Python integer, no overflow)."""
+        return math.prod(self.shape) * self.dtype.itemsize
+
+
+def _open_archive(p: Path) -> zipfile.ZipFile:
+    """Open ``p`` as a zip archive, or say what else it is."""
+    with p.open('rb') as f:
+        head = f.read(8)
+    if head.startswith(_NPY_MAGIC):
+        raise DatabaseError(f'{p} is a single .npy array, not a solid_ros database')
+    if not head.startswith(_ZIP_MAGICS):
+        raise DatabaseError(f'{p} is not a solid_ros database (not a numpy .npz archive)')
     try:
-        n, n_r, n_a = int(meta['count']), int(meta['num_range']), int(meta['num_angle'])
-    except (KeyError, TypeError, ValueError) as err:
-        raise DatabaseError(f'database metadata lacks a valid count/num_range/num_angle: '
-                            f'{err}') from err
+        return zipfile.ZipFile(p)
+    except zipfile.BadZipFile as err:
+        raise DatabaseError(f'{p} is not a solid_ros database (damaged or not a numpy .npz '
+                            f'archive: {_short(str(err))})') from err
+
+
+def read_npz_headers(zf: zipfile.ZipFile, path: str | Path) -> dict[str, NpyHeader]:
+    """Read the ``.npy`` header of every array of an archive, and no array data.
+
+    Each header must describe exactly the bytes its member holds, members must be stored
+    uncompressed (as ``numpy.savez`` writes them) and fit in the file, so that reading an
+    array afterwards allocates no more than the file's size.
+
+    Returns:
+        Headers by array name (the member name without ``.npy``).
+
+    Raises:
+        DatabaseError: a member is duplicated, compressed, bigger than the file, or its
+            header is malformed, holds Python objects or disagrees with the member's size.
+    """
+    p = Path(path)
+    size = os.stat(p).st_size
+    out: dict[str, NpyHeader] = {}
+    stored = 0
+    for info in zf.infolist():
+        if not info.filename.endswith('.npy'):
+            continue
+        key = info.filename[:-4]
+        if key in out:
+            raise DatabaseError(f'{p}: archive holds {info.filename!r} twice')
+        if info.compress_type != zipfile.ZIP_STORED or info.compress_size != info.file_size:
+            raise DatabaseError(f'{p}: array {key!r} is compressed; solid_ros databases are '
+                                'stored uncompressed (numpy.savez)')
+        stored += info.file_size
+        if stored > size:
+            raise DatabaseError(f'{p}: archive members claim {stored} bytes, more than the '
+                                f'file holds ({size})')
+        with zf.open(info) as fp:
+            header = _npy_header(fp, info.filename, p)
+        if header.data_offset + header.nbytes != info.file_size:
+            raise DatabaseError(f'{p}: array {key!r} header says {header.dtype}'
+                                f'{list(header.shape)} ({header.nbytes} bytes) but the archive '
+                                f'holds {info.file_size - header.data_offset} bytes of data')
+        out[key] = header
+    return out
+
+
+def _npy_header(fp: IO[bytes], member: str, p: Path) -> NpyHeader:
+    try:
+        version = np.lib.format.read_magic(fp)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(
+                fp, max_header_size=_MAX_NPY_HEADER)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(
+                fp, max_header_size=_MAX_NPY_HEADER)
+        else:
+            raise DatabaseError(f'{p}: {member} has .npy version {version}; expected 1.0 '
+                                'or 2.0')
+    except DatabaseError:
+        raise
+    except (ValueError, TypeError, SyntaxError, EOFError) as err:
+        raise DatabaseError(f'{p}: {member} has a malformed .npy header: '
+                            f'{_short(str(err))}') from err
+    if dtype.hasobject:
+        raise DatabaseError(f'{p}: {member} holds Python objects; solid_ros databases never do')
+    return NpyHeader(member, dtype, tuple(int(n) for n in shape), bool(fortran), fp.tell())
+
+
+def check_headers(p: Path, headers: dict[str, NpyHeader],
+                  expected: dict[str, tuple[np.dtype[Any], tuple[int | None, ...]]]) -> None:
+    """Check that every expected array is present with its dtype and shape (None = any length).
+
+    Raises:
+        DatabaseError: an array is missing or has another dtype or shape.
+    """
+    for key, (dtype, shape) in expected.items():
+        h = headers.get(key)
+        if h is None:
+            raise DatabaseError(f'{p} is incomplete: missing array {key!r}')
+        same_shape = len(h.shape) == len(shape) and all(
+            want is None or got == want for got, want in zip(h.shape, shape))
+        if h.dtype != dtype or not same_shape:
+            raise DatabaseError(f'{p}: array {key!r} is {h.dtype}{list(h.shape)}, expected '
+                                f'{dtype}{list(shape)}')
+
+
+def _read_array(zf: zipfile.ZipFile, header: NpyHeader) -> npt.NDArray[Any]:
+    with zf.open(header.member) as fp:
+        arr: npt.NDArray[Any] = np.lib.format.read_array(fp, allow_pickle=False,
+                                                         max_header_size=_MAX_NPY_HEADER)
+    return arr
+
+
+def _read_meta(zf: zipfile.ZipFile, headers: dict[str, NpyHeader], p: Path) -> dict[str, Any]:
+    """The metadata JSON, checked for format, version and well-formed sizes."""
+    h = headers.get('meta')
+    if h is None:
+        raise DatabaseError(f'{p} is not a solid_ros database (no "meta" entry)')
+    if h.dtype != np.uint8 or len(h.shape) != 1 or h.nbytes > _MAX_META_BYTES:
+        raise DatabaseError(f'{p} is not a solid_ros database ("meta" is {h.dtype}'
+                            f'{list(h.shape)}, expected uint8 JSON up to {_MAX_META_BYTES} '
+                            'bytes)')
+
+    def no_constants(name: str) -> Any:
+        raise ValueError(f'{name} is not allowed')
+
+    try:
+        meta = json.loads(_read_array(zf, h).tobytes().decode('utf-8'),
+                          parse_constant=no_constants)
+    except RecursionError as err:
+        raise DatabaseError(f'{p} is not a solid_ros database (its "meta" entry is not valid '
+                            'JSON: nested too deeply)') from err
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError, constants
+        raise DatabaseError(f'{p} is not a solid_ros database (its "meta" entry is not valid '
+                            f'JSON: {_short(str(err) or type(err).__name__)})') from err
+    if not isinstance(meta, dict) or meta.get('format') != FORMAT:
+        fmt = meta.get('format') if isinstance(meta, dict) else None
+        raise DatabaseError(f'{p} is not a solid_ros database (format {_short(repr(fmt))})')
+    if meta.get('version') != VERSION:
+        raise DatabaseError(f'{p} has database format version '
+                            f'{_short(repr(meta.get("version")))}; this solid_ros reads '
+                            f'version {VERSION}')
+    return meta
+
+
+def _short(text: str, limit: int = 120) -> str:
+    text = ' '.join(text.split())
+    return text if len(text) <= limit else text[:limit - 3] + '...'
+
+
+def _expected(meta: dict[str, Any], p: Path) -> dict[str, tuple[np.dtype[Any],
+                                                                tuple[int | None, ...]]]:
+    sizes = {}
+    for key in ('count', 'num_range', 'num_angle'):
+        value = meta.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise DatabaseError(f'{p}: database metadata lacks a valid {key}: '
+                                f'{_short(repr(value))}')
+        sizes[key] = value
+    n, n_r, n_a = sizes['count'], sizes['num_range'], sizes['num_angle']
     return {'r_solid': (np.dtype(np.float32), (n, n_r)),
             'a_solid': (np.dtype(np.float32), (n, n_a)),
             'stamps_ns': (np.dtype(np.int64), (n,)),
@@ -151,7 +421,7 @@ def _expected(meta: dict[str, Any]) -> dict[str, tuple[np.dtype[Any], tuple[int,
 
 
 def _check_arrays(p: Path, meta: dict[str, Any], arrays: dict[str, npt.NDArray[Any]]) -> None:
-    for key, (dtype, shape) in _expected(meta).items():
+    for key, (dtype, shape) in _expected(meta, p).items():
         arr = arrays[key]
         if arr.dtype != dtype or arr.shape != shape:
             raise DatabaseError(f'{p}: array {key!r} is {arr.dtype}{list(arr.shape)}, '
@@ -177,11 +447,13 @@ def load_database(path: str | Path, config: SolidConfig) -> DescriptorDatabase:
     if not isinstance(saved, dict):
         raise DatabaseError(f'{path}: metadata has no shape_params')
     current = config.shape_params()
-    diffs = [f'{k} (file {saved.get(k, "<absent>")!r}, config {current.get(k, "<absent>")!r})'
-             for k in sorted(set(saved) | set(current)) if saved.get(k) != current.get(k)]
+    diffs = [f'{_short(str(k), 40)} (file {_short(repr(saved.get(k, "<absent>")), 40)}, '
+             f'config {current.get(k, "<absent>")!r})'
+             for k in sorted(set(saved) | set(current), key=str) if saved.get(k) != current.get(k)]
     if diffs:
+        more = f'; and {len(diffs) - 6} more' if len(diffs) > 6 else ''
         raise DatabaseError(f'{path} was built with different descriptor settings: '
-                            + '; '.join(diffs))
+                            + '; '.join(diffs[:6]) + more)
     db = DescriptorDatabase(config)
     db.import_arrays(arrays)
     return db

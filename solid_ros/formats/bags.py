@@ -2,7 +2,9 @@
 small bags in all three formats, through rosbags (no ROS installation needed).
 
 Every failure to open or read a bag becomes a :class:`BagError` with a one-line message that
-names the file and the problem. A cloud that cannot be decoded inside a readable bag is not an
+names the file and the problem. MCAP files are checked against the CRCs they carry before any
+message is read (:mod:`solid_ros.formats.mcap_check`), and the MCAP bags written here carry
+them. A cloud that cannot be decoded inside a readable bag is not an
 error: :meth:`Bag.clouds` yields it with ``points=None`` and the reason, so callers can skip
 and count it.
 """
@@ -20,6 +22,7 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import BagError, CloudError
 from solid_ros.core.geometry import matrix_to_quaternion
+from solid_ros.formats.mcap_check import seal_crcs, verify_mcap
 from solid_ros.formats.pointcloud2 import CloudLayout, cloud_to_xyz, encode_points
 from solid_ros.formats.poses import PoseError, PoseTrack, odometry_to_pose
 
@@ -82,11 +85,24 @@ def _one_line(err: BaseException) -> str:
     return text if len(text) <= 200 else text[:197] + '...'
 
 
+def _verify(target: Path) -> str:
+    """Check the CRCs of the MCAP files of a bag; describe what could be checked."""
+    mcaps = sorted(target.glob('*.mcap')) if target.is_dir() else []
+    if not mcaps:
+        kind = 'ROS 1 bag' if target.suffix == '.bag' else 'no MCAP storage'
+        return f'{kind}: no CRCs to check'
+    return '; '.join(f'{f.name}: {verify_mcap(f).describe()}' for f in mcaps)
+
+
 class Bag:
     """A bag opened for reading; use as a context manager.
 
+    Attributes:
+        integrity: what the CRC check of the MCAP files found (or why there was none).
+
     Raises:
-        BagError: the path is missing, not a bag, or the bag is truncated or corrupt.
+        BagError: the path is missing, not a bag, the bag is truncated or corrupt, or an MCAP
+            file fails a CRC check.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -101,6 +117,8 @@ class Bag:
         if target.is_file() and target.suffix != '.bag':
             raise BagError(f'{self.path}: not a bag (expected a ROS 2 bag directory or a ROS 1 '
                            '.bag file)')
+        # Before rosbags reads anything: damage must stop the replay, not change its results.
+        self.integrity = _verify(target)
         try:
             self._reader = AnyReader([target])
             self._reader.open()
@@ -285,6 +303,9 @@ class BagWriter:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self._writer.close()
+        if exc_type is None and self.fmt == 'mcap':
+            for f in sorted(self.path.glob('*.mcap')):
+                seal_crcs(f)  # rosbags leaves every CRC 0
 
     def add_topic(self, topic: str, msgtype: str) -> None:
         """Register ``topic`` with message type ``msgtype`` (e.g. 'std_msgs/msg/String')."""

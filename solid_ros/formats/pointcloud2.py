@@ -65,14 +65,19 @@ def cloud_to_xyz(msg: Any) -> npt.NDArray[np.floating]:
     drops them). The result may be a read-only view into ``msg.data``.
 
     Raises:
-        CloudError: the message is inconsistent (short data, missing or non-float x/y/z,
-            zero point_step, fields beyond point_step).
+        CloudError: the message is inconsistent (short data, missing, duplicated,
+            overlapping or non-float x/y/z, x/y/z with a count other than 1, zero point_step,
+            fields beyond point_step).
     """
     try:
         height, width = int(msg.height), int(msg.width)
         point_step, row_step = int(msg.point_step), int(msg.row_step)
         big = bool(msg.is_bigendian)
-        fields = {f.name: f for f in msg.fields}
+        fields: dict[str, Any] = {}
+        for f in msg.fields:
+            if f.name in fields and f.name in ('x', 'y', 'z'):
+                raise CloudError(f'cloud has two fields named {f.name!r}')
+            fields[f.name] = f
     except (AttributeError, TypeError, ValueError) as err:
         raise CloudError(f'not a PointCloud2 message: {err}') from err
     n = height * width
@@ -95,9 +100,15 @@ def cloud_to_xyz(msg: Any) -> npt.NDArray[np.floating]:
         if int(f.datatype) not in _FLOAT_TYPES:
             raise CloudError(f'field {f.name!r} has unsupported datatype {f.datatype} '
                              '(need FLOAT32=7 or FLOAT64=8)')
+        if int(f.count) != 1:
+            raise CloudError(f'field {f.name!r} has count {f.count} (need 1)')
         if int(f.offset) < 0 or int(f.offset) + _SIZES[int(f.datatype)] > point_step:
             raise CloudError(f'field {f.name!r} at offset {f.offset} exceeds point_step '
                              f'{point_step}')
+    spans = sorted((int(f.offset), int(f.offset) + _SIZES[int(f.datatype)], f.name) for f in xyz)
+    for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
+        if start < end:
+            raise CloudError(f'fields {a!r} and {b!r} overlap')
     buf = _buffer(msg)
     need = (height - 1) * row_step + width * point_step
     if buf.size < need:
@@ -106,7 +117,7 @@ def cloud_to_xyz(msg: Any) -> npt.NDArray[np.floating]:
     kinds = {int(f.datatype) for f in xyz}
     offs = [int(f.offset) for f in xyz]
     if len(kinds) == 1:
-        dt = np.dtype(order + _FLOAT_TYPES[kinds.pop()])
+        dt = np.dtype(order + _FLOAT_TYPES[next(iter(kinds))])
         step = offs[1] - offs[0]
         if step == offs[2] - offs[1] and step > 0:
             view = _strided(buf, dt, offs[0], (height, width, 3), (row_step, point_step, step))

@@ -26,6 +26,10 @@ __all__ = [
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
+# Largest |R^T R - I| entry of a KITTI rotation: files print about 6 digits (1e-6 seen), so
+# 1e-3 only refuses what is not a rotation (zero, scaled, sheared or reflected matrices).
+_ORTHO_TOL = 1e-3
+
 
 @dataclass(frozen=True)
 class PoseTrack:
@@ -110,14 +114,30 @@ def read_kitti_poses(path: str | Path) -> FloatArray:
         (N, 4, 4) poses.
 
     Raises:
-        PoseError: unreadable file, wrong column count or non-numeric value (line named).
+        PoseError: unreadable file, wrong column count, non-numeric value or a 3x3 part that
+            is not a rotation matrix (line named).
     """
     rows = _rows(path, 'poses')
     out = np.zeros((len(rows), 4, 4))
     out[:, 3, 3] = 1.0
     for i, row in enumerate(rows):
         out[i, :3, :] = np.reshape(_floats(row, path, i + 1, 12), (3, 4))
+        rot = out[i, :3, :3]
+        if not (np.abs(rot.T @ rot - np.eye(3)).max() <= _ORTHO_TOL
+                and np.linalg.det(rot) > 0.0):
+            raise PoseError(f'{path}:{i + 1}: the 3x3 part is not a rotation matrix '
+                            f'(rows {rot.round(6).tolist()})')
     return out
+
+
+def _check_increasing(stamps: IntArray, path: str | Path, what: str) -> None:
+    """Refuse stamps that repeat or go back: pairing by stamp would pick arbitrary poses."""
+    bad = np.flatnonzero(np.diff(stamps) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        word = 'repeats' if stamps[i] == stamps[i - 1] else 'is before'
+        raise PoseError(f'{path}:{i + 1}: {what} stamp {stamps[i] / 1e9:.9f} {word} the '
+                        f'previous one ({stamps[i - 1] / 1e9:.9f}); stamps must increase')
 
 
 def read_tum_poses(path: str | Path) -> tuple[IntArray, FloatArray]:
@@ -127,7 +147,8 @@ def read_tum_poses(path: str | Path) -> tuple[IntArray, FloatArray]:
         (stamps_ns (N,), poses (N, 4, 4)).
 
     Raises:
-        PoseError: unreadable file or malformed line (named).
+        PoseError: unreadable file, malformed line, or stamps that repeat or go back (line
+            named).
     """
     rows = _rows(path, 'poses')
     stamps = np.zeros(len(rows), dtype=np.int64)
@@ -141,6 +162,7 @@ def read_tum_poses(path: str | Path) -> tuple[IntArray, FloatArray]:
             raise PoseError(f'{path}:{i + 1}: {err}') from err
         poses[i, :3, 3] = vals[1:4]
         poses[i, 3, 3] = 1.0
+    _check_increasing(stamps, path, 'pose')
     return stamps, poses
 
 
@@ -148,7 +170,8 @@ def read_times(path: str | Path) -> IntArray:
     """Read a times file (one stamp in seconds per line, KITTI ``times.txt`` style).
 
     Raises:
-        PoseError: unreadable file or a line that is not one number.
+        PoseError: unreadable file, a line that is not one number, or stamps that repeat
+            or go back (line named).
     """
     rows = _rows(path, 'times')
     out = np.zeros(len(rows), dtype=np.int64)
@@ -159,6 +182,7 @@ def read_times(path: str | Path) -> IntArray:
             out[i] = parse_stamp_ns(row[0])
         except ValueError as err:
             raise PoseError(f'{path}:{i + 1}: {err}') from err
+    _check_increasing(out, path, 'the')
     return out
 
 

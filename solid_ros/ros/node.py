@@ -30,6 +30,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -41,10 +42,12 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from solid_ros.core.config import NodeConfig, SolidConfig
 from solid_ros.core.detector import LoopDetector
-from solid_ros.core.errors import CloudError, ConfigError, SolidError
+from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
+from solid_ros.core.persistence import check_save_target, remove_stale_temporaries
 from solid_ros.formats.candidates import layout_dims, to_rows
 from solid_ros.formats.pointcloud2 import cloud_to_xyz
 from solid_ros.formats.poses import PoseError, odometry_to_pose
+from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
 from solid_ros.ros.params import apply_changes, declare_all
 from solid_ros.tools.runtime import tune_allocator, tune_thread_switching
 
@@ -92,6 +95,7 @@ class SolidNode(Node):
         except BaseException:
             super().destroy_node()
             raise
+        self._prepare_save_path()
         self.stats = NodeStats()
         self._times_ms: deque[float] = deque(maxlen=1000)
         self._det_lock = threading.Lock()
@@ -152,6 +156,18 @@ class SolidNode(Node):
             self.get_logger().info(f'loaded database {path}')
             return det
         return LoopDetector(self._solid)
+
+    def _prepare_save_path(self) -> None:
+        """Remove temporaries a killed save left; warn now when saving would be refused."""
+        if not self._cfg.database_save_path:
+            return
+        target = Path(self._cfg.database_save_path).expanduser()
+        for stale in remove_stale_temporaries(target):
+            self.get_logger().info(f'removed {stale}, left by an interrupted save')
+        try:
+            check_save_target(target)
+        except DatabaseError as err:
+            self.get_logger().warning(f'~/save_database will refuse: {err}')
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         try:
@@ -397,10 +413,35 @@ def _save_atomic(detector: LoopDetector, path: str) -> None:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run ``solid_node`` until SIGINT or ROS shutdown; return the process exit status."""
+    """Run ``solid_node`` until SIGINT or ROS shutdown; return the process exit status.
+
+    Args:
+        args: the full command line, program name first (default ``sys.argv``).
+
+    Returns:
+        0 after SIGINT or shutdown (and for ``--help``), 1 when the database cannot be
+        loaded, 2 for a bad parameter file, parameter value or ROS argument.
+    """
+    argv = list(sys.argv if args is None else args)
+    try:
+        cli = scan_arguments(argv)
+        if cli.help:
+            print(usage())
+            return 0
+        # Before rclpy.init(): rcl would refuse a bad file with a traceback, and would start
+        # silently on defaults with an empty file or one for another node.
+        check_parameter_files(cli)
+    except ConfigError as err:
+        print(f'solid_node: error: {err}', file=sys.stderr)
+        return 2
     tune_allocator()
     tune_thread_switching()
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=argv)
+    except RCLError as err:  # what the check above does not know (log levels, remaps, ...)
+        print(f'solid_node: error: invalid ROS arguments: {" ".join(str(err).split())}',
+              file=sys.stderr)
+        return 2
     logger = rclpy.logging.get_logger('solid_node')
     node: SolidNode | None = None
     status = 0

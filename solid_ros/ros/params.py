@@ -27,15 +27,13 @@ from rclpy.exceptions import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from solid_ros.core.config import NodeConfig, ParamSpec, SolidConfig, param_specs
+from solid_ros.core.config import NodeConfig, ParamSpec, SolidConfig, param_specs, type_message
 from solid_ros.core.errors import ConfigError
 
 __all__ = ['apply_changes', 'declare_all', 'make_descriptor', 'unknown_overrides']
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
-_TYPE_WORDS = {bool: 'true or false', int: 'an integer', float: 'a floating-point number',
-               str: 'a string'}
 _INT64 = (-(2**63), 2**63 - 1)
 # Parameters every rclpy node accepts besides its own.
 _STANDARD = frozenset({'use_sim_time', 'start_type_description_service'})
@@ -129,9 +127,4 @@ def _override_value(param: Any) -> Any:
 
 
 def _type_message(spec: ParamSpec, override: Any) -> str:
-    value = _override_value(override)
-    msg = (f'{spec.name}: expected {_TYPE_WORDS[spec.type]} in {spec.range_text()}, '
-           f'got {value!r}')
-    if spec.type is float and isinstance(value, int) and not isinstance(value, bool):
-        msg += f' (write {float(value)!r}: ROS 2 rejects an integer for a double parameter)'
-    return msg
+    return type_message(spec, _override_value(override))

@@ -90,6 +90,7 @@ def ground_truth(positions: npt.ArrayLike, *, radius: float = 5.0,
         max_heading_deg: also require headings within this many degrees.
         block: queries per vectorised block (memory is block x N floats).
     """
+    _check_gates(radius, max_heading_deg)
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = len(pos)
     keep = np.ones(n, bool) if stored is None else np.asarray(stored, dtype=bool)
@@ -123,6 +124,14 @@ def ground_truth(positions: npt.ArrayLike, *, radius: float = 5.0,
         nearest[q] = np.where(has_loop[q], near, -1)
     has_loop &= valid
     return GroundTruth(has_loop, nearest, valid)
+
+
+def _check_gates(radius: float, max_heading_deg: float | None) -> None:
+    """NaN, infinite or negative gates would silently change every score."""
+    if not 0.0 < radius < math.inf:
+        raise ValueError(f'radius must be a positive number of metres, got {radius}')
+    if max_heading_deg is not None and not 0.0 < max_heading_deg <= 180.0:
+        raise ValueError(f'max_heading_deg must be in (0, 180], got {max_heading_deg}')
 
 
 def true_matches(positions: npt.ArrayLike, query: npt.ArrayLike, match: npt.ArrayLike, *,

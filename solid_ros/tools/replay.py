@@ -27,9 +27,10 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.config import NodeConfig, SolidConfig, load_yaml_parameters
+from solid_ros.core.config import NodeConfig, SolidConfig, check_parameters, load_parameter_file
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import ConfigError, SolidError
+from solid_ros.core.persistence import check_save_target
 from solid_ros.formats.bags import Bag, select_cloud_topic, select_odom_topic
 from solid_ros.formats.poses import PoseError, PoseTrack, associate, load_reference
 from solid_ros.tools.evaluation import Evaluation, evaluate, sweep_table
@@ -114,14 +115,17 @@ def load_config(params: str | Path | None, node_name: str = 'solid_node',
                 overrides: dict[str, Any] | None = None) -> tuple[SolidConfig, NodeConfig]:
     """Read the detector and node settings from a parameter file, as the node does.
 
+    The file passes the node's rule (:func:`~solid_ros.core.config.load_parameter_file`), and
+    ``overrides`` (``--set``) the rule of the node's ``-p`` overrides.
+
     Raises:
         ConfigError: unreadable file, unknown key or invalid value (named).
     """
     values: dict[str, Any] = {}
     if params is not None:
-        values = load_yaml_parameters(params, node_name)
+        values = load_parameter_file(params, node_name)
+    check_parameters(overrides or {}, '--set')
     values.update(overrides or {})
-    SolidConfig.from_dict(values)  # strict: unknown keys are errors, as in the node
     return (SolidConfig.from_dict(values, strict=False),
             NodeConfig.from_dict(values, strict=False))
 
@@ -167,9 +171,14 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
     feed_odom = ncfg.use_odom if use_odom is None else use_odom
     if times is not None and poses is None:
         raise PoseError('--times needs --poses')
-    if not radius > 0.0:
-        raise ConfigError(f'radius must be positive, got {radius}')
+    if not 0.0 < radius < math.inf:
+        raise ConfigError(f'--radius must be a positive number of metres, got {radius}')
+    if max_heading_deg is not None and not 0.0 < max_heading_deg <= 180.0:
+        raise ConfigError(f'--max-heading-deg must be in (0, 180] degrees, got '
+                          f'{max_heading_deg}')
     file_track = load_reference(poses, times) if poses is not None else None
+    if save_db is not None:
+        check_save_target(save_db)  # refuse before the run, not after it
     detector = LoopDetector.load(load_db, cfg) if load_db is not None else LoopDetector(cfg)
     t_start = time.perf_counter()
     with Bag(bag) as b:
@@ -266,6 +275,7 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
         'versions': _versions(),
         'bag': str(bag),
         'format': 'ros1' if b.is_ros1 else 'ros2',
+        'integrity': b.integrity,
         'topic': cloud_topic,
         'odom_topic': odom_name,
         'odometry_fed_to_detector': bool(feed_odom and odom_track is not None),
@@ -281,8 +291,8 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
                     'scans_per_sec': len(stamps) / wall if wall > 0 else None,
                     'read_decode_ms': _percentiles(read_ms),
                     'detect_ms': _percentiles(detect_ms)},
-        'database': {'size': db.size, 'bytes': db.nbytes,
-                     'bytes_per_scan': db.bytes_per_scan,
+        'database': {'size': db.size, 'bytes': db.stored_bytes,
+                     'allocated_bytes': db.nbytes, 'bytes_per_scan': db.bytes_per_scan,
                      'peak_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0},
         'metrics': None,
         'threshold_sweep': None,
@@ -410,6 +420,20 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f'{self.prog}: error: {message} (see --help)\n')
 
 
+def _radius(text: str) -> float:
+    value = float(text)
+    if not 0.0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f'must be a positive number of metres, got {text!r}')
+    return value
+
+
+def _heading(text: str) -> float:
+    value = float(text)
+    if not 0.0 < value <= 180.0:
+        raise argparse.ArgumentTypeError(f'must be in (0, 180] degrees, got {text!r}')
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (``solid_replay --help``)."""
     p = _Parser(
@@ -444,9 +468,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='reference poses: KITTI 3x4 (one per scan, or per --times stamp) or TUM')
     p.add_argument('--times', metavar='FILE',
                    help='stamps in seconds, one per line, for a KITTI --poses file')
-    p.add_argument('--radius', type=float, default=5.0, metavar='M',
+    p.add_argument('--radius', type=_radius, default=5.0, metavar='M',
                    help='true-loop distance in metres (default: %(default)s)')
-    p.add_argument('--max-heading-deg', type=float, metavar='DEG',
+    p.add_argument('--max-heading-deg', type=_heading, metavar='DEG',
                    help='also require a heading difference below this for a true loop')
     p.add_argument('--out', metavar='DIR',
                    help='write candidates.csv, report.json and PNG plots here')
@@ -493,6 +517,7 @@ def summary_lines(r: ReplayResult) -> list[str]:
     lines = [
         f'{PROG} summary',
         f'  bag               {r.bag} ({rep["format"]}, {r.topic})',
+        f'  integrity         {rep["integrity"]}',
         f'  scans             {r.messages} read, {r.skipped} skipped, {r.keyframes} keyframes',
         f'  loops accepted    {len(r.candidates)} (distance_threshold '
         f'{r.config.distance_threshold})',
@@ -501,7 +526,8 @@ def summary_lines(r: ReplayResult) -> list[str]:
         f'  detect ms         p50 {_fmt(det["p50"], ".2f")}  p90 {_fmt(det["p90"], ".2f")}  '
         f'p99 {_fmt(det["p99"], ".2f")}  max {_fmt(det["max"], ".2f")}',
         f'  database          {rep["database"]["size"]} scans, '
-        f'{rep["database"]["bytes"] / 1e6:.2f} MB',
+        f'{rep["database"]["bytes"] / 1e6:.2f} MB ({rep["database"]["bytes_per_scan"]} bytes '
+        'per scan)',
     ]
     m = rep['metrics']
     if m is None:

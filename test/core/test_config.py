@@ -5,10 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from bad_inputs import BAD_FILES, write_bad_file
 from project_paths import CONFIG_DIR  # noqa: E402
 
 from solid_ros import ConfigError, NodeConfig, SolidConfig
-from solid_ros.core.config import load_yaml_parameters, param_specs
+from solid_ros.core.config import load_parameter_file, load_yaml_parameters, param_specs
 
 
 def test_defaults_are_the_authors_cpp_defaults() -> None:
@@ -85,7 +86,7 @@ def test_yaml_layout_errors_are_clear(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match='num_range'):
         SolidConfig.from_yaml(bad)
     bad.write_text('other_node:\n  ros__parameters:\n    num_range: 3\n')
-    with pytest.raises(ConfigError, match="no ros__parameters block for node 'solid_node'"):
+    with pytest.raises(ConfigError, match="no ros__parameters block for node '/solid_node'"):
         SolidConfig.from_yaml(bad)
     bad.write_text('solid_node:\n  ros__parameters:\n    nmu_range: 3\n')
     with pytest.raises(ConfigError, match="unknown parameter 'nmu_range'"):
@@ -103,3 +104,43 @@ def test_wildcard_block_and_node_block_merge(tmp_path: Path) -> None:
                  'solid_node:\n  ros__parameters:\n    num_range: 20\n')
     cfg = SolidConfig.from_yaml(f)
     assert (cfg.num_angle, cfg.num_range) == (90, 20)
+
+
+@pytest.mark.parametrize('name', sorted(BAD_FILES))
+def test_bad_parameter_files_give_one_line_naming_the_file(tmp_path: Path, name: str) -> None:
+    path = write_bad_file(tmp_path, name)
+    with pytest.raises(ConfigError) as info:
+        SolidConfig.from_yaml(path)
+    text = str(info.value)
+    assert text.startswith(f'{path}: ') and '\n' not in text and len(text) < 400, text
+
+
+def test_integer_for_float_names_the_fix(tmp_path: Path) -> None:
+    path = write_bad_file(tmp_path, 'integer for float')
+    with pytest.raises(ConfigError, match=r'got 90 \(write 90.0: ROS 2 rejects an integer'):
+        load_parameter_file(path)
+    # Keyword construction in Python stays lenient.
+    assert SolidConfig(fov_width_deg=90).fov_width_deg == 90.0
+
+
+@pytest.mark.parametrize('key, applies', [
+    ('solid_node', True), ('/solid_node', True), ('/**', True), ('/**/solid_node', True),
+    ('/*', True), ('/solid_*', True), ('other', False), ('/ns/solid_node', False),
+    ('/*/solid_node', False),
+])
+def test_blocks_match_node_names_as_rcl_does(tmp_path: Path, key: str, applies: bool) -> None:
+    f = tmp_path / 'p.yaml'
+    f.write_text(f'{key}:\n  ros__parameters:\n    num_range: 20\n')
+    if applies:
+        assert load_parameter_file(f) == {'num_range': 20}
+    else:
+        with pytest.raises(ConfigError, match='no ros__parameters block'):
+            load_parameter_file(f)
+
+
+def test_nested_namespace_blocks(tmp_path: Path) -> None:
+    f = tmp_path / 'p.yaml'
+    f.write_text('robot:\n  solid_node:\n    ros__parameters:\n      num_range: 20\n')
+    assert load_parameter_file(f, '/robot/solid_node') == {'num_range': 20}
+    with pytest.raises(ConfigError, match='blocks: /robot/solid_node'):
+        load_parameter_file(f)

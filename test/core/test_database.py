@@ -153,7 +153,32 @@ def test_wrong_shape_is_refused() -> None:
 def test_memory_per_scan_is_under_1_kib() -> None:
     db = _db(capacity=100_000)
     assert db.bytes_per_scan <= 1024
-    assert db.nbytes == pytest.approx(db.bytes_per_scan * 100_000)
+    assert db.nbytes == db.bytes_per_scan * db.allocated
+    assert db.allocated < 100_000 and db.stored_bytes == 0  # not allocated up front
+    db.add(np.ones(40), np.ones(60), 0)
+    assert db.stored_bytes == db.bytes_per_scan
+
+
+def test_store_grows_by_doubling_and_keeps_every_scan() -> None:
+    r = _random(3000, seed=4)
+    grown = _db(capacity=2500, search='brute')
+    sizes = []
+    for i, row in enumerate(r):
+        grown.add(row, np.ones(60), i * SEC, [i, 0, 0, 0, 0, 0, 1])
+        sizes.append(grown.allocated)
+    assert sorted(set(sizes)) == [1024, 2048, 2500]  # doubled, capped at capacity
+    out = grown.export_arrays()
+    unit = r[500:] / np.linalg.norm(r[500:], axis=1, keepdims=True)
+    np.testing.assert_allclose(out['r_solid'], unit, rtol=1e-6)
+    assert out['stamps_ns'].tolist() == [i * SEC for i in range(500, 3000)]
+    assert out['poses'][:, 0].tolist() == list(range(500, 3000))
+    # Queries before and after growth and wrap find the exact nearest stored scan.
+    for q in range(600, 3000, 97):
+        (best,) = grown.search(r[q], 10**13, k=1)
+        assert best.index == q
+    loaded = _db(capacity=5000, search='kdtree', session_id=1)
+    loaded.import_arrays(out)
+    assert loaded.allocated == 2500 and loaded.size == 2500
 
 
 def test_loaded_session_is_not_excluded() -> None:

@@ -204,3 +204,16 @@ def test_heading_match_is_runtime_tunable_and_used_for_the_yaw() -> None:
         want = estimate_yaw(describe(query, cfg).heading, describe(stored, cfg).heading, mode)
         assert results[mode] == pytest.approx(want, abs=1e-6)  # stored as float32
     assert results['full'] != pytest.approx(results['overlap'], abs=1e-6)
+
+
+@pytest.mark.parametrize('stamp', [2**63, -(2**63) - 1, 10**30, float('nan'), float('inf'),
+                                   'abc', None])
+def test_stamps_outside_int64_are_solid_errors(stamp: object) -> None:
+    det = LoopDetector(SolidConfig().replace(exclude_recent_sec=1e9, exclude_recent_frames=0))
+    det.process(place(0), 2**63 - 1)
+    det.process(place(0), -(2**63))  # both ends of int64 are fine
+    with pytest.raises(SolidError, match='stamp'):
+        det.process(place(1), stamp)  # type: ignore[arg-type]
+    with pytest.raises(SolidError, match='stamp'):
+        det.process_descriptor(det.last_descriptor, stamp)  # type: ignore[arg-type]
+    assert det.database.size == 2

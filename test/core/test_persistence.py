@@ -2,7 +2,18 @@
 
 from __future__ import annotations
 
+import fcntl
+import io
+import json
 import os
+import pickle
+import resource
+import signal
+import stat
+import subprocess
+import sys
+import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +23,15 @@ from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import DescriptorDatabase
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.errors import DatabaseError
-from solid_ros.core.persistence import load_database, read_database, save_database
+from solid_ros.core.persistence import (
+    FORMAT,
+    check_save_target,
+    is_database,
+    load_database,
+    read_database,
+    remove_stale_temporaries,
+    save_database,
+)
 
 SEC = 1_000_000_000
 
@@ -135,3 +154,192 @@ def test_save_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None
     assert [p.name for p in tmp_path.iterdir()] == ['db.npz']  # no temp file left
     with pytest.raises(DatabaseError, match='cannot write'):
         save_database(_filled(2), tmp_path / 'no_dir' / 'db.npz')
+
+
+# -- crafted files: refused from the headers, before any array is read -------------------------
+
+
+def _npz(path: Path, members: dict[str, bytes], compress: int = zipfile.ZIP_STORED) -> Path:
+    with zipfile.ZipFile(path, 'w', compression=compress) as zf:
+        for name, blob in members.items():
+            zf.writestr(name, blob)
+    return path
+
+
+def _npy(arr: np.ndarray | None = None, *, header: dict[str, object] | None = None,
+         data: bytes = b'') -> bytes:
+    bio = io.BytesIO()
+    if arr is not None:
+        np.lib.format.write_array(bio, arr, allow_pickle=False)
+    else:
+        np.lib.format.write_array_header_1_0(bio, header)
+        bio.write(data)
+    return bio.getvalue()
+
+
+def _members(db_path: Path) -> dict[str, bytes]:
+    with zipfile.ZipFile(db_path) as zf:
+        return {n: zf.read(n) for n in zf.namelist()}
+
+
+def _meta(**changes: object) -> bytes:
+    meta = {'format': FORMAT, 'version': 1, 'count': 6, 'num_range': 40,
+            'num_angle': 60, 'shape_params': SolidConfig().shape_params(), 'sessions': [0]}
+    meta.update(changes)
+    return _npy(np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8))
+
+
+def test_crafted_metadata_is_refused(tmp_path: Path) -> None:
+    good = _members(save_database(_filled(6), tmp_path / 'db.npz'))
+    cases = {
+        'infinity': (good | {'meta.npy': _npy(np.frombuffer(
+            json.dumps({'format': FORMAT, 'version': 1,
+                        'count': float('inf')}).encode(), np.uint8))}, 'Infinity'),
+        'nested': (good | {'meta.npy': _npy(np.frombuffer(b'[' * 100_000 + b']' * 100_000,
+                                                          np.uint8))}, 'not valid JSON'),
+        'float count': (good | {'meta.npy': _meta(count=6.0)}, 'valid count'),
+        'negative': (good | {'meta.npy': _meta(num_range=-40)}, 'valid num_range'),
+        'meta not bytes': (good | {'meta.npy': _npy(np.zeros(3))}, 'not a solid_ros database'),
+        'other format': (good | {'meta.npy': _meta(format='x' * 10_000)}, 'format'),
+        'version': (good | {'meta.npy': _meta(version=2)}, 'version 2'),
+    }
+    for name, (members, words) in cases.items():
+        p = _npz(tmp_path / f'{name}.npz', members)
+        with pytest.raises(DatabaseError, match=words) as info:
+            load_database(p, SolidConfig())
+        assert str(p) in str(info.value) and len(str(info.value)) < 400, name
+
+
+def test_huge_array_headers_are_refused_without_allocating(tmp_path: Path) -> None:
+    # The 2.1 MB file that made the loader allocate 2.1 GB: headers consistent with a huge
+    # count, data absent.
+    n = 10**9
+    members = {'meta.npy': _meta(count=n)}
+    for key, (dtype, cols) in {'r_solid': ('<f4', (40,)), 'a_solid': ('<f4', (60,)),
+                               'stamps_ns': ('<i8', ()), 'indices': ('<i8', ()),
+                               'sessions': ('<i4', ()), 'poses': ('<f4', (7,))}.items():
+        members[key + '.npy'] = _npy(header={'descr': dtype, 'fortran_order': False,
+                                             'shape': (n, *cols)}, data=bytes(2_000_000))
+    p = _npz(tmp_path / 'huge.npz', members)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter()
+    with pytest.raises(DatabaseError, match=r'header says float32\[1000000000, 40\]'):
+        LoopDetector.load(p)
+    assert time.perf_counter() - t0 < 1.0
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 100_000  # KiB
+
+
+def test_archives_that_are_not_savez_databases(tmp_path: Path) -> None:
+    good_path = save_database(_filled(6), tmp_path / 'db.npz')
+    good = _members(good_path)
+    cases = {
+        'compressed': (_npz(tmp_path / 'c.npz', good, zipfile.ZIP_DEFLATED), 'compressed'),
+        'object array': (_npz(tmp_path / 'o.npz', good | {'poses.npy': _npy(
+            header={'descr': '|O', 'fortran_order': False, 'shape': (6, 7)})}), 'objects'),
+        'bad header': (_npz(tmp_path / 'h.npz', good | {'poses.npy': b'\x93NUMPY\x01\x00'
+                                                        b'\x10\x00{nonsense}      \n'}),
+                       'malformed .npy header'),
+        'short data': (_npz(tmp_path / 's.npz', good | {
+            'poses.npy': good['poses.npy'][:-4]}), "'poses' header says"),
+        'pickle': (tmp_path / 'p.pkl', 'not a solid_ros database'),
+        'png': (tmp_path / 'x.png', 'not a solid_ros database'),
+        'directory': (tmp_path / 'dir', 'not a readable'),
+    }
+    (tmp_path / 'p.pkl').write_bytes(pickle.dumps({'r_solid': [1, 2]}))
+    (tmp_path / 'x.png').write_bytes(b'\x89PNG\r\n\x1a\n' + bytes(100))
+    (tmp_path / 'dir').mkdir()
+    np.save(tmp_path / 'pickled.npy', np.array([{'a': 1}], dtype=object), allow_pickle=True)
+    for name, (path, words) in cases.items():
+        with pytest.raises(DatabaseError, match=words) as info:
+            load_database(path, SolidConfig())
+        assert 'allow_pickle' not in str(info.value), name
+    with pytest.raises(DatabaseError) as info:
+        load_database(tmp_path / 'pickled.npy', SolidConfig())
+    assert 'allow_pickle' not in str(info.value)
+    # A zip with the same member twice (np.load would pick the last one).
+    with zipfile.ZipFile(tmp_path / 'twice.npz', 'w') as zf:
+        for name, blob in good.items():
+            zf.writestr(name, blob)
+        with pytest.warns(UserWarning):
+            zf.writestr('poses.npy', good['poses.npy'])
+    with pytest.raises(DatabaseError, match='twice'):
+        load_database(tmp_path / 'twice.npz', SolidConfig())
+
+
+# -- saving: never through a link, never over a non-database; stale temporaries ---------------
+
+
+def test_save_refuses_targets_that_are_not_databases(tmp_path: Path) -> None:
+    db = _filled(4)
+    text = tmp_path / 'notes.txt'
+    text.write_text('precious\n')
+    real = save_database(db, tmp_path / 'real.npz')
+    real_bytes = real.read_bytes()
+    link = tmp_path / 'link.npz'
+    link.symlink_to(real)
+    dangling = tmp_path / 'dangling.npz'
+    dangling.symlink_to(tmp_path / 'nowhere.npz')
+    fifo = tmp_path / 'fifo'
+    os.mkfifo(fifo)
+    (tmp_path / 'dir.npz').mkdir()
+    cases = {text: 'not a solid_ros database', link: 'symbolic link',
+             dangling: 'symbolic link', fifo: 'not a regular file',
+             tmp_path / 'dir.npz': 'not a regular file'}
+    for target, words in cases.items():
+        with pytest.raises(DatabaseError, match=words):
+            save_database(db, target)
+        with pytest.raises(DatabaseError, match=words):
+            check_save_target(target)
+    assert text.read_text() == 'precious\n' and real.read_bytes() == real_bytes
+    assert link.is_symlink() and dangling.is_symlink() and not (tmp_path / 'nowhere.npz').exists()
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert not list(tmp_path.glob('.*.tmp'))
+    # A database is replaced, a new file written.
+    save_database(_filled(9), real)
+    assert read_database(real)[0]['count'] == 9
+    save_database(db, tmp_path / 'new.npz')
+    assert is_database(tmp_path / 'new.npz') and not is_database(text)
+
+
+def test_stale_temporaries_are_removed_unless_a_save_holds_them(tmp_path: Path) -> None:
+    target = tmp_path / 'db.npz'
+    stale = [tmp_path / '.db.npz.k3j_9a0q.tmp', tmp_path / '.db.npz.00000000.tmp']
+    for p in stale:
+        p.write_bytes(os.urandom(1000))
+    kept = [tmp_path / '.db.npz.toolongname.tmp', tmp_path / '.other.npz.k3j_9a0q.tmp',
+            tmp_path / 'db.npz.k3j_9a0q.tmp']
+    for p in kept:
+        p.write_bytes(b'x')
+    busy = tmp_path / '.db.npz.busy_123.tmp'
+    busy.write_bytes(b'being written')
+    with busy.open('rb+') as held:
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX)
+        save_database(_filled(3), target)
+        assert busy.exists()
+    assert not any(p.exists() for p in stale) and all(p.exists() for p in kept)
+    assert remove_stale_temporaries(target) == [busy]  # its writer is gone now
+
+
+def test_a_killed_save_leaves_a_temporary_the_next_save_removes(tmp_path: Path) -> None:
+    target = tmp_path / 'db.npz'
+    code = ('import sys, time, numpy as np\n'
+            'from solid_ros.core import persistence\n'
+            'from solid_ros.core.database import DescriptorDatabase\n'
+            'from solid_ros.core.config import SolidConfig\n'
+            'def slow(f, **arrays):\n'
+            '    f.write(b"x" * 100000); f.flush(); print("writing", flush=True); time.sleep(60)\n'
+            'np.savez = slow\n'
+            'db = DescriptorDatabase(SolidConfig(capacity=10))\n'
+            'persistence.save_database(db, sys.argv[1])\n')
+    proc = subprocess.Popen([sys.executable, '-c', code, str(target)], stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == 'writing\n'
+        (tmp,) = tmp_path.glob('.db.npz.*.tmp')
+        assert remove_stale_temporaries(target) == [] and tmp.exists()  # the save is alive
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert tmp.exists() and not target.exists()
+    save_database(_filled(3), target)
+    assert not tmp.exists() and is_database(target)

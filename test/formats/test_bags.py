@@ -19,6 +19,7 @@ from solid_ros.formats.bags import (
     select_odom_topic,
     write_cloud_bag,
 )
+from solid_ros.formats.mcap_check import verify_mcap
 from solid_ros.formats.pointcloud2 import CloudLayout, encode_points
 
 
@@ -68,7 +69,7 @@ def test_mcap_bag_reads_with_the_reference_mcap_library(tmp_path: Path) -> None:
     path = write_cloud_bag(tmp_path / 'bag', _scans(), 'mcap')
     (storage,) = path.glob('*.mcap')
     with storage.open('rb') as fh:
-        reader = make_reader(fh)
+        reader = make_reader(fh, validate_crcs=True)  # the CRCs seal_crcs filled in
         summary = reader.get_summary()
         assert summary is not None
         channels = {c.topic: c for c in summary.channels.values()}
@@ -202,6 +203,7 @@ def test_hku1_bag(shared_data: Path) -> None:
         clouds = list(bag.clouds(topic))
         track = bag.odometry(odom)
     assert len(clouds) == 314 and all(c.points is not None for c in clouds)
+    assert 'no CRCs in the file' in bag.integrity  # rosbags wrote it without CRCs
     assert all(c.frame_id == 'livox_frame' for c in clouds)
     stamps = [c.stamp_ns for c in clouds]
     assert stamps == sorted(stamps)
@@ -209,3 +211,36 @@ def test_hku1_bag(shared_data: Path) -> None:
     # odometry starts at the origin and the sequence returns near its start (README)
     pos = track.positions
     assert np.linalg.norm(pos[0]) < 0.1 and np.linalg.norm(pos[300] - pos[25]) < 10.0
+
+
+def test_written_mcap_carries_crcs_and_every_bit_flip_is_caught(tmp_path: Path) -> None:
+    path = write_cloud_bag(tmp_path / 'bag', _scans(6), 'mcap')
+    (storage,) = path.glob('*.mcap')
+    check = verify_mcap(storage)
+    assert check.chunks >= 1 and check.chunks_checked == check.chunks
+    assert check.data_section_checked and check.summary_checked
+    with Bag(path) as bag:
+        assert 'verified' in bag.integrity
+    data = storage.read_bytes()
+    rng = np.random.default_rng(3)
+    damaged = tmp_path / 'damaged.mcap'
+    for pos in rng.integers(0, len(data), 200):
+        flipped = bytearray(data)
+        flipped[pos] ^= 1 << int(rng.integers(0, 8))
+        damaged.write_bytes(bytes(flipped))
+        with pytest.raises(BagError, match='MCAP') as info:
+            verify_mcap(damaged)
+        assert '\n' not in str(info.value)
+
+
+def test_unsealed_mcap_is_read_but_said_to_be_unchecked(tmp_path: Path) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with Writer(tmp_path / 'plain', version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection('/s', 'std_msgs/msg/String', typestore=store)
+        w.write(conn, 1, store.serialize_cdr(store.types['std_msgs/msg/String'](data='x'),
+                                             'std_msgs/msg/String'))
+    with Bag(tmp_path / 'plain') as bag:
+        assert 'no CRCs in the file: damage cannot be detected' in bag.integrity

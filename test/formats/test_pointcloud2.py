@@ -124,3 +124,39 @@ def test_rclpy_message_decodes() -> None:
                                          count=1) for f in lay.fields]
     msg.data = array.array('B', lay.data.tobytes())
     np.testing.assert_allclose(cloud_to_xyz(msg), XYZ.astype('f4'))
+
+
+def _xyz_f4(offsets: tuple[int, int, int], step: int) -> tuple[np.ndarray, list[Any]]:
+    dt = np.dtype({'names': list('xyz'), 'formats': ['<f4'] * 3, 'offsets': list(offsets),
+                   'itemsize': step})
+    rec = np.zeros(len(XYZ), dtype=dt)
+    rec['x'], rec['y'], rec['z'] = XYZ.T
+    return rec, [_field(n, o, FLOAT32) for n, o in zip('xyz', offsets)]
+
+
+def test_uneven_float32_offsets_stay_float32() -> None:
+    rec, fields = _xyz_f4((0, 4, 12), 16)
+    out = cloud_to_xyz(_cloud(rec, fields))
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out, XYZ.astype(np.float32))
+
+
+@pytest.mark.parametrize('count', [0, 2, 3])
+def test_xyz_count_other_than_one_is_refused(count: int) -> None:
+    rec, fields = _xyz_f4((0, 4, 8), 12)
+    fields[1] = SimpleNamespace(name='y', offset=4, datatype=FLOAT32, count=count)
+    with pytest.raises(CloudError, match=f"'y' has count {count}"):
+        cloud_to_xyz(_cloud(rec, fields))
+
+
+def test_duplicate_or_overlapping_xyz_fields_are_refused() -> None:
+    rec, fields = _xyz_f4((0, 4, 8), 16)
+    with pytest.raises(CloudError, match="two fields named 'x'"):
+        cloud_to_xyz(_cloud(rec, fields + [_field('x', 12, FLOAT32)]))
+    # Another field may repeat a name the decoder does not use.
+    extra = [_field('i', 12, FLOAT32), _field('i', 12, FLOAT32)]
+    assert cloud_to_xyz(_cloud(rec, fields + extra)).shape == XYZ.shape
+    rec, fields = _xyz_f4((0, 4, 8), 12)
+    fields[2] = _field('z', 2, FLOAT32)
+    with pytest.raises(CloudError, match="'x' and 'z' overlap"):
+        cloud_to_xyz(_cloud(rec, fields))

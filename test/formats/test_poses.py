@@ -115,3 +115,29 @@ def test_associate_nearest_within_tolerance() -> None:
     assert got.tolist() == [1, 2, 0, -1, 1]
     assert associate([5], np.array([], dtype=np.int64), 10).tolist() == [-1]
     assert associate([5, 40], np.array([0]), 10).tolist() == [0, -1]
+
+
+@pytest.mark.parametrize('row, words', [
+    ('0 0 0 1 0 0 0 2 0 0 0 3', 'not a rotation matrix'),  # all-zero rotation
+    ('-1 0 0 0 0 1 0 0 0 0 1 0', 'not a rotation matrix'),  # reflection
+    ('2 0 0 0 0 2 0 0 0 0 2 0', 'not a rotation matrix'),  # scaled
+])
+def test_kitti_rotation_must_be_a_rotation(tmp_path: Path, row: str, words: str) -> None:
+    f = tmp_path / 'p.txt'
+    f.write_text('1 0 0 0 0 1 0 0 0 0 1 0\n' + row + '\n')
+    with pytest.raises(PoseError, match=f'p.txt:2: the 3x3 part is {words}'):
+        read_kitti_poses(f)
+
+
+@pytest.mark.parametrize('stamps, line, words', [
+    ('1.0\n2.0\n2.0\n', 3, 'repeats'), ('1.0\n3.0\n2.0\n', 3, 'is before'),
+])
+def test_stamps_must_increase(tmp_path: Path, stamps: str, line: int, words: str) -> None:
+    f = tmp_path / 't.txt'
+    f.write_text(stamps)
+    with pytest.raises(PoseError, match=f't.txt:{line}: the stamp .* {words} the previous'):
+        read_times(f)
+    tum = tmp_path / 'tum.txt'
+    tum.write_text(''.join(f'{s} 0 0 0 0 0 0 1\n' for s in stamps.split()))
+    with pytest.raises(PoseError, match=f'tum.txt:{line}: pose stamp .* {words}'):
+        read_tum_poses(tum)

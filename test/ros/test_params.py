@@ -151,3 +151,5 @@ def test_runtime_changes_validated_by_the_schema() -> None:
         apply_changes(solid, node_cfg, [Parameter('num_range', value=20)])
     with pytest.raises(ConfigError, match='unknown'):
         apply_changes(solid, node_cfg, [Parameter('nonsense', value=1)])
+    with pytest.raises(ConfigError, match='database_save_path.*read-only'):
+        apply_changes(solid, node_cfg, [Parameter('database_save_path', value='/etc/passwd')])

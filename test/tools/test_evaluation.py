@@ -135,3 +135,13 @@ def test_yaw_error_stats_and_shapes() -> None:
     assert yaw_error_stats([])['mean'] is None
     with pytest.raises(ValueError, match='best_distance has shape'):
         evaluate(np.zeros((3, 3)), [0, 0, 0], [0.1], [0, 0, 0], [True] * 3)
+
+
+@pytest.mark.parametrize('radius, heading', [(float('nan'), None), (-1.0, None),
+                                             (float('inf'), None), (5.0, float('nan')),
+                                             (5.0, -10.0), (5.0, 0.0), (5.0, 181.0)])
+def test_nan_or_negative_gates_are_refused(radius: float, heading: float | None) -> None:
+    pos = np.zeros((4, 3))
+    with pytest.raises(ValueError, match='radius|max_heading_deg'):
+        ground_truth(pos, radius=radius, rotations=np.tile(np.eye(3), (4, 1, 1)),
+                     max_heading_deg=heading)

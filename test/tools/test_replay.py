@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -230,6 +231,12 @@ def _bad_inputs(tmp_path: Path, bags: dict[str, Path]) -> dict[str, tuple[list[s
     (trunc / 'metadata.yaml').write_bytes((src / 'metadata.yaml').read_bytes())
     data = (src / 'mcap.mcap').read_bytes()
     (trunc / 'mcap.mcap').write_bytes(data[:len(data) // 3])
+    damaged, flipped = tmp_path / 'damaged', tmp_path / 'flipped'
+    for bag, pos, blob in ((damaged, len(data) // 2, os.urandom(64)),
+                           (flipped, len(data) // 3, bytes([data[len(data) // 3] ^ 4]))):
+        bag.mkdir()
+        (bag / 'metadata.yaml').write_bytes((src / 'metadata.yaml').read_bytes())
+        (bag / 'mcap.mcap').write_bytes(data[:pos] + blob + data[pos + len(blob):])
     ros1 = tmp_path / 'cut.bag'
     ros1.write_bytes(bags['ros1'].read_bytes()[:5000])
     poses = tmp_path / 'poses.txt'
@@ -238,11 +245,28 @@ def _bad_inputs(tmp_path: Path, bags: dict[str, Path]) -> dict[str, tuple[list[s
     times.write_text('1.0\n2.0\n')
     params = tmp_path / 'bad.yaml'
     params.write_text('solid_node:\n  ros__parameters:\n    num_range: -3\n')
+    binary = tmp_path / 'binary.yaml'
+    binary.write_bytes(bytes(range(256)))
+    integer = tmp_path / 'integer.yaml'
+    integer.write_text('solid_node:\n  ros__parameters:\n    fov_width_deg: 90\n')
+    n = len(ROUTE)
+    poses16 = tmp_path / 'poses16.txt'
+    poses16.write_text('1 0 0 0 0 1 0 0 0 0 1 0\n' * n)
+    zero_rot = tmp_path / 'zero_rot.txt'
+    zero_rot.write_text('1 0 0 0 0 1 0 0 0 0 1 0\n' * (n - 1) + '0 0 0 1 0 0 0 2 0 0 0 3\n')
+    repeated = tmp_path / 'repeated.txt'
+    repeated.write_text(''.join(f'{t}.5\n' for t in [0, 1, 2, 2] + list(range(4, n))))
+    back = tmp_path / 'back.txt'
+    back.write_text(''.join(f'{t}.5\n' for t in [0, 2, 1] + list(range(3, n))))
+    tum = tmp_path / 'tum.txt'
+    tum.write_text(''.join(f'{t} 0 0 0 0 0 0 1\n' for t in [3, 2] + list(range(4, n + 2))))
     b = str(bags['mcap'])
     return {
         'missing path': ([str(tmp_path / 'nope')], 'no such file or directory'),
         'not a bag': ([str(notbag)], 'not a bag'),
-        'truncated mcap': ([str(trunc)], 'cannot open bag'),
+        'truncated mcap': ([str(trunc)], 'truncated MCAP file'),
+        'overwritten bytes in a chunk': ([str(damaged)], 'fails its CRC check'),
+        'one bit flipped': ([str(flipped)], 'fails its CRC check'),
         'truncated ros1': ([str(ros1)], 'cut.bag'),
         'topic absent': ([b, '--topic', '/lidar'], 'topic /lidar not in bag'),
         'wrong type': ([b, '--topic', '/odom'], 'has type nav_msgs/msg/Odometry'),
@@ -255,6 +279,16 @@ def _bad_inputs(tmp_path: Path, bags: dict[str, Path]) -> dict[str, tuple[list[s
         'bad --set': ([b, '--set', 'distance_threshold=abc'], 'distance_threshold'),
         'unknown --set': ([b, '--set', 'nope=1'], "unknown parameter 'nope'"),
         'bad database': ([b, '--load-db', str(notbag)], 'notes.txt'),
+        'database over a text file': ([b, '--save-db', str(notbag)],
+                                      'notes.txt exists and is not a solid_ros database'),
+        'binary params': ([b, '--params', str(binary)], 'is not UTF-8 text'),
+        'integer for float': ([b, '--params', str(integer)], 'write 90.0'),
+        'repeated times': ([b, '--poses', str(poses16), '--times', str(repeated)],
+                           'repeats the previous one'),
+        'times going back': ([b, '--poses', str(poses16), '--times', str(back)],
+                             'is before the previous one'),
+        'zero rotation': ([b, '--poses', str(zero_rot)], 'not a rotation matrix'),
+        'TUM stamps going back': ([b, '--poses', str(tum)], 'is before the previous one'),
     }
 
 
@@ -268,12 +302,15 @@ def test_bad_input_gives_one_line_error(tmp_path: Path, bags: dict[str, Path],
         assert len(lines) == 1 and lines[0].startswith('solid_replay: error: '), (name, err)
         assert expect in lines[0], (name, lines[0])
         assert 'Traceback' not in err and out == ''
+    assert (tmp_path / 'notes.txt').read_text() == 'hello'  # never replaced by --save-db
 
 
 def test_bad_command_line_exits_2(capsys: pytest.CaptureFixture[str],
                                   bags: dict[str, Path]) -> None:
-    for argv in ([], [str(bags['mcap']), '--times', 't.txt'], [str(bags['mcap']), '--radius',
-                                                               'far']):
+    b = str(bags['mcap'])
+    for argv in ([], [b, '--times', 't.txt'], [b, '--radius', 'far'], [b, '--radius', 'inf'],
+                 [b, '--radius', '-1'], [b, '--max-heading-deg', 'nan'],
+                 [b, '--max-heading-deg', '-5'], [b, '--max-heading-deg', '0']):
         with pytest.raises(SystemExit) as exc:
             main(argv)
         assert exc.value.code == 2
