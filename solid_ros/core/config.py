@@ -225,6 +225,9 @@ class SolidConfig(_Schema):
     max_candidates: int = _p(1, 'Most loop candidates reported per query', low=1, high=100)
     min_loop_gap: int = _p(0, 'Queries between two accepted loops (0 = off)', low=0,
                            high=1_000_000)
+    heading_match: str = _p('full', "Heading search: 'full' compares whole heading signatures "
+                            "(the paper); 'overlap' only the bins both scans see, for narrow "
+                            'fields of view', choices=('full', 'overlap'))
 
     # Keyframe gating (0 turns a criterion off; all off keeps every scan).
     keyframe_min_sec: float = _p(0.0, 'Keyframe when this many seconds passed', low=0.0,

@@ -362,7 +362,8 @@ class LoopDetector:
             self.last_best = LoopCandidate(
                 query_index=q_index, match_index=top.index, query_stamp_ns=stamp,
                 match_stamp_ns=top.stamp_ns, match_session=top.session, distance=top.distance,
-                yaw=estimate_yaw(desc.heading, db.a_solid(top.seq)), margin=margin_of(top),
+                yaw=estimate_yaw(desc.heading, db.a_solid(top.seq), cfg.heading_match),
+                margin=margin_of(top),
                 reason='best')
         chosen = []
         for hit in hits[:cfg.num_candidates]:
@@ -431,7 +432,8 @@ class LoopDetector:
             rmse=result.rmse, covariance=cov, reason=result.reason, overlap=result.overlap)
 
     def _accept_by_descriptor(self, proposal: Proposal, gap_blocked: bool) -> list[LoopCandidate]:
-        return [self._candidate(proposal, h, estimate_yaw(proposal.heading, h.heading), None)
+        mode = self._config.heading_match
+        return [self._candidate(proposal, h, estimate_yaw(proposal.heading, h.heading, mode), None)
                 for h in proposal.hits]
 
     def _accept_by_registration(self, proposal: Proposal,
@@ -451,7 +453,8 @@ class LoopDetector:
         yaws: dict[int, float] = {}
         coarse = []
         for i, (hit, cloud) in enumerate(zip(proposal.hits, clouds)):
-            hyps = heading_hypotheses(proposal.heading, hit.heading, cfg.verify_hypotheses)
+            hyps = heading_hypotheses(proposal.heading, hit.heading, cfg.verify_hypotheses,
+                                      cfg.heading_match)
             yaws[i] = hyps[0][0] if hyps else 0.0
             if gap_blocked:
                 continue

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from project_paths import CONFIG_DIR
 
 from solid_ros import SolidConfig, cosine_distance, describe
 from solid_ros.core.descriptor import fov_mask, preprocess, voxel_downsample
@@ -188,3 +189,179 @@ def test_heading_signature_is_a_solid_or_range_weighted(shared_data: Path) -> No
     near = describe(np.array([[10.0, 0.0, -1.0]]), cfg).heading
     far = describe(np.array([[20.0, 0.0, -2.0]]), cfg).heading
     assert far.sum() == pytest.approx(4 * near.sum())
+
+
+# --- The implementation before the one-pass rewrite, kept as the oracle for bit identity ---
+
+def _reference_voxel(cols: np.ndarray, leaf: float) -> np.ndarray:
+    n = cols.shape[1]
+    if n == 0:
+        return np.zeros((3, 0))
+    scaled = cols * cols.dtype.type(1.0 / leaf)
+    np.floor(scaled, out=scaled)
+    cells = scaled.astype(np.int64)
+    cells -= cells.min(axis=1, keepdims=True)
+    bits = [int(e).bit_length() for e in cells.max(axis=1)]
+    idx_bits = max(int(n - 1).bit_length(), 1)
+    if sum(bits) + idx_bits <= 62:
+        packed = cells[0]
+        packed <<= bits[1]
+        packed |= cells[1]
+        packed <<= bits[2]
+        packed |= cells[2]
+        packed <<= idx_bits
+        packed |= np.arange(n, dtype=np.int64)
+        packed.sort()
+        order = packed & ((1 << idx_bits) - 1)
+        packed >>= idx_bits
+        skey = packed
+    else:
+        _, inverse = np.unique(cells.T, axis=0, return_inverse=True)
+        order = np.argsort(inverse.ravel(), kind='stable')
+        skey = inverse.ravel()[order]
+    change = np.empty(n, dtype=bool)
+    change[0] = True
+    np.not_equal(skey[1:], skey[:-1], out=change[1:])
+    start = np.flatnonzero(change)
+    sums = np.add.reduceat(np.take(cols, order, axis=1), start, axis=1, dtype=np.float64)
+    sums /= np.diff(np.append(start, n))
+    return sums
+
+
+def _reference_fov(x: np.ndarray, y: np.ndarray, width: float, center: float) -> np.ndarray:
+    if width >= 360.0:
+        return np.ones(np.shape(x), dtype=bool)
+    rel = np.arctan2(y, x)
+    np.degrees(rel, out=rel)
+    if center != 0.0:
+        rel -= center - 180.0
+        np.mod(rel, 360.0, out=rel)
+        rel -= 180.0
+    np.abs(rel, out=rel)
+    return rel <= 0.5 * width
+
+
+def _reference_describe(points: np.ndarray, cfg: SolidConfig) -> dict[str, np.ndarray]:
+    arr = np.asarray(points)
+    if arr.size == 0:
+        cols = np.empty((3, 0))
+    else:
+        if arr.dtype not in (np.float32, np.float64):
+            arr = arr.astype(np.float64)
+        cols = np.ascontiguousarray(arr[:, :3].T)
+    if cols.shape[1] == 0:
+        pre = np.zeros((3, 0))
+    else:
+        x, y, z = cols
+        with np.errstate(invalid='ignore', over='ignore'):
+            d2 = x * x
+            d2 += y * y
+            d2 += z * z
+        keep = d2 > cfg.min_range ** 2
+        keep &= d2 < cfg.max_range ** 2
+        if cfg.fov_width_deg < 360.0:
+            with np.errstate(invalid='ignore'):
+                keep &= _reference_fov(x, y, cfg.fov_width_deg, cfg.fov_center_deg)
+        if not keep.all():
+            cols = np.stack([np.compress(keep, c) for c in cols])
+        pre = (_reference_voxel(cols, cfg.voxel_size) if cfg.voxel_size > 0.0
+               else cols.astype(np.float64))
+    n_r, n_a, n_e = cfg.num_range, cfg.num_angle, cfg.num_height
+    x, y, z = pre
+    r = np.hypot(x, y)
+    inside = r < cfg.max_distance
+    x, y, z, r = x[inside], y[inside], z[inside], r[inside]
+    theta = np.degrees(np.arctan2(y, x))
+    theta[theta < 0.0] += 360.0
+    phi = np.degrees(np.arctan2(z, r))
+    ir = np.minimum((r * (n_r / cfg.max_distance)).astype(np.int64), n_r - 1)
+    ia = np.minimum((theta * (n_a / 360.0)).astype(np.int64), n_a - 1)
+    gap_e = (cfg.fov_up_deg - cfg.fov_down_deg) / n_e
+    ie = np.clip(((phi - cfg.fov_down_deg) / gap_e).astype(np.int64), 0, n_e - 1)
+    rec = np.bincount(ir * n_e + ie, minlength=n_r * n_e).reshape(n_r, n_e).astype(np.float64)
+    aec = np.bincount(ia * n_e + ie, minlength=n_a * n_e).reshape(n_a, n_e).astype(np.float64)
+    ec = rec.sum(axis=0)
+    lo, hi = float(ec.min()), float(ec.max())
+    iev = ((ec - lo) / (hi - lo) if hi > lo else
+           np.ones_like(ec) if hi > 0.0 else np.zeros_like(ec))
+    heading = aec @ iev
+    if cfg.heading_weight == 'range':
+        a_range = np.bincount(ia * n_e + ie, weights=r * r, minlength=n_a * n_e)
+        heading = a_range.reshape(n_a, n_e) @ iev
+    return {'r_solid': rec @ iev, 'a_solid': aec @ iev, 'heading': heading,
+            'centroids': pre}
+
+
+_VIEWS = [(360.0, 0.0), (60.0, 0.0), (70.0, 0.0), (90.0, 90.0), (120.0, -45.0),
+          (180.0, 0.0), (180.0, 90.0), (270.0, 180.0)]
+
+
+def _assert_bit_identical(points: np.ndarray, cfg: SolidConfig) -> None:
+    ref = _reference_describe(points, cfg)
+    got = describe(points, cfg)
+    for name in ('r_solid', 'a_solid', 'heading'):
+        np.testing.assert_array_equal(getattr(got, name), ref[name], err_msg=name)
+    np.testing.assert_array_equal(preprocess(points, cfg), ref['centroids'].T)
+
+
+@pytest.mark.parametrize('width,center', _VIEWS)
+def test_bit_identical_to_the_previous_implementation_on_kitti(
+        shared_data: Path, width: float, center: float) -> None:
+    scan = read_pcd(shared_data / 'kitti' / 'pcd' / '000313.pcd')
+    for weight in ('count', 'range'):
+        cfg = SolidConfig(fov_width_deg=width, fov_center_deg=center, heading_weight=weight)
+        _assert_bit_identical(scan, cfg)
+        _assert_bit_identical(scan.astype(np.float64), cfg)
+
+
+@pytest.fixture(scope='module')
+def simulated_scans() -> list[np.ndarray]:
+    from solid_ros.sim import simulate
+    scans = []
+    for sensor in ('hdl64', 'avia_like'):
+        scans += [s.cloud for s in simulate(seed=4, sensor=sensor, num_scans=2)]
+    return scans
+
+
+@pytest.mark.parametrize('width,center', _VIEWS)
+def test_bit_identical_to_the_previous_implementation_on_simulated_scans(
+        simulated_scans: list[np.ndarray], width: float, center: float) -> None:
+    for cloud in simulated_scans:  # (N, 4) float32 with intensity: a strided x, y, z view
+        for cfg in (SolidConfig(fov_width_deg=width, fov_center_deg=center),
+                    SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml').replace(
+                        fov_width_deg=width, fov_center_deg=center, heading_weight='range')):
+            _assert_bit_identical(cloud, cfg)
+
+
+def _edge_points() -> np.ndarray:
+    # Points exactly on FOV edges (multiples of 15 deg), on the axes, and near the origin.
+    rng = np.random.default_rng(11)
+    ang = np.radians(np.repeat(np.arange(-180.0, 180.0, 15.0), 20))
+    r = rng.uniform(0.5, 90.0, ang.size)
+    ring = np.column_stack([r * np.cos(ang), r * np.sin(ang), rng.uniform(-3, 1, ang.size)])
+    tiny = rng.uniform(-10, 10, (300, 3))
+    tiny[::3, 0] *= 1e-12  # coordinates near zero: sums of very different magnitudes
+    tiny[1::3, 2] = 1e-30
+    return np.vstack([ring, tiny]).astype(np.float32)
+
+
+@pytest.mark.parametrize('width,center', _VIEWS)
+def test_bit_identical_on_bad_and_edge_input(shared_data: Path, width: float,
+                                             center: float) -> None:
+    scan = read_pcd(shared_data / 'kitti' / 'pcd' / '000314.pcd')
+    dirty = scan.copy()
+    dirty[::97] = np.nan
+    dirty[5::101, 1] = np.inf
+    dirty[7::89, 0] = -np.inf
+    dirty[9::50, 2] = 1e30
+    cases = [dirty, _edge_points(), np.vstack([dirty, _edge_points()]).astype(np.float64),
+             np.empty((0, 3), np.float32), np.full((20, 3), np.nan, np.float32)]
+    settings = [{}, {'voxel_size': 0.0}, {'min_range': 0.0, 'max_range': 120.0},
+                {'voxel_size': 0.001, 'max_range': 1000.0, 'max_distance': 100.0}]
+    for points in cases:
+        for extra in settings:
+            cfg = SolidConfig(fov_width_deg=width, fov_center_deg=center, **extra)
+            _assert_bit_identical(points, cfg)
+            np.testing.assert_array_equal(
+                fov_mask(points[:, 0], points[:, 1], width, center),
+                _reference_fov(points[:, 0], points[:, 1], width, center))

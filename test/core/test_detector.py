@@ -192,6 +192,24 @@ def test_hku1_revisit_is_found(shared_data: Path) -> None:
     assert len(correct) >= 0.9 * len(loop)
 
 
+def test_heading_match_is_runtime_tunable_and_used_for_the_yaw() -> None:
+    from solid_ros.core.descriptor import describe
+    from solid_ros.core.matching import estimate_yaw
+    cfg = _cfg(fov_width_deg=90.0, exclude_recent_frames=0)
+    stored, query = place(1), rotz(place(1), 50.0)
+    results = {}
+    for mode in ('full', 'overlap'):
+        det = LoopDetector(cfg)
+        det.process(stored, 0)
+        det.reconfigure(cfg.replace(heading_match=mode))  # not read-only
+        det.process(query, SEC)
+        assert det.last_best is not None and det.last_best.match_index == 0
+        results[mode] = det.last_best.yaw
+        want = estimate_yaw(describe(query, cfg).heading, describe(stored, cfg).heading, mode)
+        assert results[mode] == pytest.approx(want, abs=1e-6)  # stored as float32
+    assert results['full'] != pytest.approx(results['overlap'], abs=1e-6)
+
+
 @pytest.mark.parametrize('stamp', [2**63, -(2**63) - 1, 10**30, float('nan'), float('inf'),
                                    'abc', None])
 def test_stamps_outside_int64_are_solid_errors(stamp: object) -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from solid_ros import SolidConfig, cosine_distance, describe, estimate_yaw
 from solid_ros.core.matching import heading_hypotheses
-from solid_ros.formats.pointfiles import read_pcd
+from solid_ros.formats.pointfiles import read_kitti_bin, read_pcd
 
 
 def rotate(points: np.ndarray, yaw: float) -> np.ndarray:
@@ -133,7 +133,8 @@ def test_hypotheses_are_sub_bin_refined() -> None:
 
 def test_hypotheses_of_degenerate_curves() -> None:
     a = np.ones(60)
-    assert heading_hypotheses(a, a, 3) == [(0.0, 0.0)]  # flat cost: one hypothesis
+    flat = heading_hypotheses(a, a, 3)  # flat cost: one hypothesis
+    assert len(flat) == 1 and flat[0] == pytest.approx((0.0, 0.0), abs=1e-12)
     assert heading_hypotheses(np.zeros(60), a, 3) == []
     assert heading_hypotheses(a, a, 0) == []
     with pytest.raises(ValueError):
@@ -145,3 +146,84 @@ def test_hypotheses_of_degenerate_curves() -> None:
     assert math.degrees(hyps[0][0]) == pytest.approx(-6.0)
     assert len(hyps) == 1
 
+
+
+def test_yaw_agrees_with_the_direct_squared_difference_search() -> None:
+    # The correlation form of the cost must pick the shift and fraction the definition does:
+    # the squared difference of the normalised signatures, neighbours blended.
+    rng = np.random.default_rng(8)
+    idx = (np.arange(60)[None, :] - np.arange(60)[:, None]) % 60
+    for _ in range(300):
+        a = rng.uniform(0, 1, 60) ** 3
+        b = np.roll(a, int(rng.integers(60))) + rng.normal(0, 0.05, 60)
+        u = (a / np.linalg.norm(a))[idx]
+        v = b / np.linalg.norm(b)
+        cost = ((u - v) ** 2).sum(axis=1)
+        s = int(np.argmin(cost))
+        best, frac = cost[s], 0.0
+        for step in (1, -1):
+            d = u[(s + step) % 60] - u[s]
+            f = min(max(float((v - u[s]) @ d) / float(d @ d), 0.0), 1.0)
+            if cost[s] - f * f * float(d @ d) < best:
+                best, frac = cost[s] - f * f * float(d @ d), step * f
+        want = math.radians(math.remainder((s + frac) * 6.0, 360.0))
+        assert angle_error_deg(estimate_yaw(a, b), want) < 1e-9
+        assert heading_hypotheses(a, b, 1)[0][1] == pytest.approx(best, abs=1e-12)
+
+
+def test_overlap_mode_is_the_full_search_when_both_views_go_all_around() -> None:
+    rng = np.random.default_rng(9)
+    for _ in range(50):
+        a = rng.uniform(0.1, 1, 60)
+        b = np.roll(a, int(rng.integers(60))) * rng.uniform(0.9, 1.1, 60)
+        assert estimate_yaw(a, b, 'overlap') == estimate_yaw(a, b)
+        assert heading_hypotheses(a, b, 3, 'overlap') == heading_hypotheses(a, b, 3)
+
+
+def test_overlap_mode_checks_its_arguments_and_falls_back() -> None:
+    with pytest.raises(ValueError, match='mode'):
+        estimate_yaw(np.ones(60), np.ones(60), 'partial')
+    assert estimate_yaw(np.zeros(60), np.ones(60), 'overlap') == 0.0
+    assert heading_hypotheses(np.zeros(60), np.ones(60), 2, 'overlap') == []
+    # Views of two bins each never share the 4 bins (24 deg) asked for: the full search.
+    a = np.zeros(60)
+    a[[0, 1]] = [1.0, 2.0]
+    b = np.roll(a, 10)
+    assert estimate_yaw(a, b, 'overlap') == estimate_yaw(a, b)
+
+
+def _narrow_pairs(data: Path, cfg: SolidConfig, yaws_deg: list[float]) -> list[tuple[
+        np.ndarray, np.ndarray, float]]:
+    # Real KITTI 00 scans turned by yaw and then clipped to the view (what a sensor turned by
+    # yaw sees), against the previous scan (about 1 m back) seen with the sensor unturned.
+    scans = [read_kitti_bin(data / 'kitti' / 'seq00_frames' / f'00000{i}.bin')[:, :3]
+             for i in range(6)]
+    out = []
+    for prev, cur in zip(scans, scans[1:]):
+        cand = describe(prev, cfg).heading
+        for yaw in np.radians(yaws_deg):
+            out.append((describe(rotate(cur, -yaw), cfg).heading, cand, float(yaw)))
+    return out
+
+
+@pytest.mark.parametrize('width,weight,yaws', [
+    (90.0, 'range', [-48.0, -43.0, 41.0, 46.0]), (70.0, 'count', [-38.0, -31.0, 33.0, 37.0])])
+def test_overlap_mode_finds_headings_beyond_half_the_view(
+        shared_data: Path, width: float, weight: str, yaws: list[float]) -> None:
+    # Turned by more than half the view, the two views share only part of it: the full
+    # search lines up the views (the paper's failure), the overlap search the scenes.
+    cfg = SolidConfig(fov_width_deg=width, heading_weight=weight)
+    pairs = _narrow_pairs(shared_data, cfg, yaws)
+    full = [angle_error_deg(estimate_yaw(q, c), y) for q, c, y in pairs]
+    over = [angle_error_deg(estimate_yaw(q, c, 'overlap'), y) for q, c, y in pairs]
+    assert np.mean(over) < 3.0, over
+    assert np.mean(full) > 10.0, full
+    for q, c, _ in pairs:
+        assert heading_hypotheses(q, c, 3, 'overlap')[0][0] == estimate_yaw(q, c, 'overlap')
+
+
+def test_overlap_mode_keeps_small_headings_sub_bin_accurate(shared_data: Path) -> None:
+    cfg = SolidConfig(fov_width_deg=90.0, heading_weight='range')
+    pairs = _narrow_pairs(shared_data, cfg, [-17.3, -4.1, 2.9, 13.7, 22.1])
+    over = [angle_error_deg(estimate_yaw(q, c, 'overlap'), y) for q, c, y in pairs]
+    assert np.mean(over) < 1.0, over
