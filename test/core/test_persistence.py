@@ -343,3 +343,42 @@ def test_a_killed_save_leaves_a_temporary_the_next_save_removes(tmp_path: Path) 
     assert tmp.exists() and not target.exists()
     save_database(_filled(3), target)
     assert not tmp.exists() and is_database(target)
+
+
+def _sim_points(index: int) -> np.ndarray:
+    from solid_ros.sim.drive import Drive, DriveConfig
+
+    return Drive(DriveConfig(seed=0, sensor='avia_like')).scan(index).points.copy()
+
+
+def test_keyframe_clouds_round_trip_and_verify_a_later_session(tmp_path: Path) -> None:
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    cfg = SolidConfig.from_yaml(Path(__file__).resolve().parents[2] / 'config' / 'avia.yaml')
+    cfg = cfg.replace(exclude_recent_frames=0, distance_threshold=0.3, num_candidates=3)
+    first = LoopDetector(cfg)
+    for k, i in enumerate((5, 60, 120)):
+        first.process(_sim_points(i), k * 1_000_000_000)
+    assert len(first.clouds) == 3
+    first.save(tmp_path / 'run1.npz')
+    second = LoopDetector.load(tmp_path / 'run1.npz', cfg.replace(session_id=1))
+    assert [c.points.tolist() for _, c in second.clouds.items()] == [
+        c.points.tolist() for _, c in first.clouds.items()]
+    assert [c.n_struct for _, c in second.clouds.items()] == [
+        c.n_struct for _, c in first.clouds.items()]
+    (loop,) = second.process(_sim_points(273), 10 * 1_000_000_000)  # a revisit of scan 5
+    assert (loop.match_session, loop.match_index, loop.verified) == (0, 0, True)
+
+    # The same file as format version 1 (no clouds): loads, but nothing can be verified.
+    with zipfile.ZipFile(tmp_path / 'run1.npz') as zf:
+        members = {n: zf.read(n) for n in zf.namelist() if not n.startswith('cloud_')}
+    meta = json.loads(np.load(io.BytesIO(members['meta.npy'])).tobytes())
+    meta['version'] = 1
+    del meta['cloud_points']
+    buf = io.BytesIO()
+    np.save(buf, np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8))
+    members['meta.npy'] = buf.getvalue()
+    _npz(tmp_path / 'v1.npz', members)
+    old = LoopDetector.load(tmp_path / 'v1.npz', cfg.replace(session_id=1))
+    assert old.database.size == 3 and len(old.clouds) == 0
+    assert old.process(_sim_points(273), 10 * 1_000_000_000) == []
+    assert [a.reason for a in old.last_attempts][:1] == ['no_cloud']
