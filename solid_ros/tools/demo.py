@@ -25,7 +25,7 @@ from solid_ros.tools.runtime import tune_allocator
 __all__ = ['main', 'revisit_table', 'shipped_config']
 
 PROG = 'solid_demo'
-SENSOR_PARAMS = {'hdl64': 'demo.yaml', 'avia_like': 'avia.yaml'}
+SENSOR_PARAMS = {'hdl64': 'hdl64.yaml', 'avia_like': 'avia.yaml'}
 
 
 def shipped_config(name: str) -> Path:

@@ -326,7 +326,7 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
     cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
     result = replay(hku / 'bag', cfg, poses=hku / 'optimized_poses.txt',
                     times=hku / 'times.txt', out_dir=tmp_path, progress='quiet')
-    assert result.messages == 314 and result.skipped == 0 and result.keyframes == 314
+    assert result.messages == 314 and result.skipped == 0
     assert result.report['topic'] == '/points' and result.report['odom_topic'] == '/odom_slam'
     # The replayed candidates are exactly those of the detector on the bag's clouds.
     from solid_ros.formats.bags import Bag
@@ -341,9 +341,11 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
             assert scan.points is not None
             want += det.process(scan.points, scan.stamp_ns, pose=poses.get(scan.stamp_ns))
     assert result.candidates == want
+    # The preset's keyframe gating (0.5 m, 10 deg on the bag's odometry) keeps fewer scans.
+    assert result.keyframes == det.num_keyframes < 314
     m = result.metrics
     assert m is not None
-    assert m['queries_with_true_loop'] > 100
+    assert m['queries_with_true_loop'] > 30
     # The revisit (keyframes ~274-313 see ~19-34) is retrieved: well above chance.
     assert m['recall_at_1'] > 0.2 and m['roc_auc'] > 0.4
     assert 0.0 < m['f1_max'] <= 1.0 and m['f1_max_threshold'] is not None
