@@ -5,10 +5,18 @@ The node publishes the accepted candidates of one query as one message: ``layout
 comma-separated column names of :data:`COLUMNS`. Row ``i`` column ``j`` is
 ``data[data_offset + i * dim[1].stride + j]``. Stamps are split into ``sec`` / ``nanosec``
 (both exact in float64) so a back end can match them to its own keyframe header stamps.
+
+After the first ten columns (the layout of older publishers) come ``verified`` (1 or 0), the
+relative pose ``T`` = pose of the query sensor in the match sensor's frame (``p_match = T
+p_query``) as ``tx ty tz qx qy qz qw``, ``fitness``, ``rmse`` and the 6x6 covariance of ``T``
+row-major as ``cov_0`` ... ``cov_35`` (ROS order x, y, z, roll, pitch, yaw). Columns are
+found by name, so a decoder reads older 10-column messages too: their missing columns decode
+as ``verified`` 0 and NaN.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import Any
 
@@ -17,16 +25,21 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
 
-__all__ = ['COLUMNS', 'INT_COLUMNS', 'ROWS_LABEL', 'COLUMNS_LABEL', 'CandidateDecodeError',
-           'decode_candidates', 'layout_dims', 'split_stamp', 'to_rows']
+__all__ = ['BASE_COLUMNS', 'COLUMNS', 'COLUMNS_LABEL', 'COV_COLUMNS', 'INT_COLUMNS',
+           'POSE_COLUMNS', 'ROWS_LABEL', 'CandidateDecodeError', 'decode_candidates',
+           'layout_dims', 'split_stamp', 'to_rows']
 
-COLUMNS: tuple[str, ...] = (
+BASE_COLUMNS: tuple[str, ...] = (
     'query_index', 'match_index', 'query_stamp_sec', 'query_stamp_nanosec',
     'match_stamp_sec', 'match_stamp_nanosec', 'distance', 'yaw', 'margin', 'match_session',
 )
+POSE_COLUMNS: tuple[str, ...] = ('tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw')
+COV_COLUMNS: tuple[str, ...] = tuple(f'cov_{i}' for i in range(36))
+COLUMNS: tuple[str, ...] = (BASE_COLUMNS + ('verified',) + POSE_COLUMNS + ('fitness', 'rmse')
+                            + COV_COLUMNS)
 # Columns holding integers (decoded as int).
 INT_COLUMNS = frozenset({'query_index', 'match_index', 'query_stamp_sec', 'query_stamp_nanosec',
-                         'match_stamp_sec', 'match_stamp_nanosec', 'match_session'})
+                         'match_stamp_sec', 'match_stamp_nanosec', 'match_session', 'verified'})
 ROWS_LABEL = 'candidates'
 COLUMNS_LABEL = ','.join(COLUMNS)
 _NS = 1_000_000_000
@@ -46,16 +59,16 @@ def to_rows(candidates: Iterable[Any]) -> npt.NDArray[np.float64]:
     """Return an ``(n, len(COLUMNS))`` float64 array, one row per candidate.
 
     Args:
-        candidates: objects with the LoopCandidate attributes ``query_index``,
-            ``match_index``, ``query_stamp_ns``, ``match_stamp_ns``, ``distance``, ``yaw``,
-            ``margin`` and ``match_session``.
+        candidates: :class:`~solid_ros.core.detector.LoopCandidate` objects (or any with its
+            attributes).
     """
     rows = []
     for c in candidates:
         q_sec, q_ns = split_stamp(c.query_stamp_ns)
         m_sec, m_ns = split_stamp(c.match_stamp_ns)
         rows.append((c.query_index, c.match_index, q_sec, q_ns, m_sec, m_ns, c.distance,
-                     c.yaw, c.margin, c.match_session))
+                     c.yaw, c.margin, c.match_session, float(bool(c.verified)), *c.pose,
+                     c.fitness, c.rmse, *c.covariance))
     if not rows:
         return np.empty((0, len(COLUMNS)), dtype=np.float64)
     return np.asarray(rows, dtype=np.float64)
@@ -71,12 +84,13 @@ def decode_candidates(msg: Any) -> list[dict[str, float | int]]:
     """Decode a loop-candidate Float64MultiArray (rclpy or rosbags message) into dicts.
 
     Columns are found by name from ``layout.dim[1].label``, so a newer publisher that appends
-    columns still decodes. Each dict holds every column (integers as ``int``) plus
-    ``query_stamp_ns`` and ``match_stamp_ns`` in integer nanoseconds.
+    columns still decodes, and so does an older one without the pose columns (``verified``
+    0, the rest NaN). Each dict holds every column of :data:`COLUMNS` (integers as ``int``)
+    plus ``query_stamp_ns`` and ``match_stamp_ns`` in integer nanoseconds.
 
     Raises:
-        CandidateDecodeError: the layout is not two-dimensional, lacks a column, or the data
-            is shorter than the layout says.
+        CandidateDecodeError: the layout is not two-dimensional, lacks one of the first ten
+            columns, or the data is shorter than the layout says.
     """
     try:
         dims = list(msg.layout.dim)
@@ -87,7 +101,7 @@ def decode_candidates(msg: Any) -> list[dict[str, float | int]]:
     if len(dims) != 2:
         raise CandidateDecodeError(f'expected 2 layout dimensions, got {len(dims)}')
     names = [n.strip() for n in str(dims[1].label).split(',')]
-    missing = [c for c in COLUMNS if c not in names]
+    missing = [c for c in BASE_COLUMNS if c not in names]
     if missing:
         raise CandidateDecodeError(f'column {missing[0]!r} missing from layout label '
                                    f'{dims[1].label!r}')
@@ -105,7 +119,8 @@ def decode_candidates(msg: Any) -> list[dict[str, float | int]]:
         row = data[offset + r * stride: offset + r * stride + ncol]
         item: dict[str, float | int] = {}
         for name in COLUMNS:
-            value = float(row[col[name]])
+            value = float(row[col[name]]) if name in col else (0.0 if name == 'verified'
+                                                               else math.nan)
             item[name] = int(value) if name in INT_COLUMNS else value
         item['query_stamp_ns'] = int(item['query_stamp_sec']) * _NS + int(
             item['query_stamp_nanosec'])

@@ -14,6 +14,7 @@ never blocked by descriptor computation.
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 import time
@@ -41,7 +42,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from solid_ros.core.config import NodeConfig, SolidConfig
-from solid_ros.core.detector import LoopDetector
+from solid_ros.core.detector import LoopCandidate, LoopDetector, Proposal
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
 from solid_ros.core.persistence import check_save_target, remove_stale_temporaries
 from solid_ros.formats.candidates import layout_dims, to_rows
@@ -58,6 +59,7 @@ _ODOM_BUFFER = 512
 _ODOM_WAIT_SEC = 0.25
 _ODOM_MAX_MISSES = 3  # waits in a row that saw no odometry before the node stops waiting
 _WARN_THROTTLE_SEC = 5.0
+_MIN_PROPOSALS = 20  # keyframes that may wait for verification (at least queue_size)
 
 
 @dataclass
@@ -71,6 +73,12 @@ class NodeStats:
     failed: int = 0
     loops: int = 0
     without_odom: int = 0
+    verify_skipped: int = 0
+
+
+def _sec(stamp_ns: int) -> str:
+    sec, ns = divmod(int(stamp_ns), 1_000_000_000)
+    return f'{sec}.{ns:09d} s'
 
 
 def _stamp_ns(stamp: Any) -> int:
@@ -98,11 +106,18 @@ class SolidNode(Node):
         self._prepare_save_path()
         self.stats = NodeStats()
         self._times_ms: deque[float] = deque(maxlen=1000)
+        self._stage_ms: dict[str, deque[float]] = {k: deque(maxlen=1000)
+                                                    for k in ('describe', 'search', 'verify')}
+        # Stage 1 (describe, search, store) and stage 2 (verify, publish) each hold their lock
+        # while they use the detector; save and reset take both.
         self._det_lock = threading.Lock()
+        self._verify_lock = threading.Lock()
         self._cv = threading.Condition()
         self._queue: deque[tuple[npt.NDArray[np.floating], int]] = deque(
             maxlen=self._cfg.queue_size)
+        self._proposals: deque[tuple[Proposal, npt.NDArray[np.float64] | None]] = deque()
         self._busy = False
+        self._verifying = False
         self._stop = False
         self._odom: deque[tuple[int, npt.NDArray[np.float64]]] = deque(maxlen=_ODOM_BUFFER)
         self._odom_frame = ''
@@ -130,8 +145,11 @@ class SolidNode(Node):
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_timer(self._cfg.diagnostics_period_sec, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._worker = threading.Thread(target=self._run, name='solid_worker', daemon=True)
+        self._worker = threading.Thread(target=self._run, name='solid_describe', daemon=True)
+        self._verifier = threading.Thread(target=self._run_verify, name='solid_verify',
+                                          daemon=True)
         self._worker.start()
+        self._verifier.start()
         self.get_logger().info(
             f'ready: database {self._db_size()} scans, FOV {self._solid.fov_width_deg} deg, '
             f'threshold {self._solid.distance_threshold}, queue {self._cfg.queue_size} '
@@ -173,7 +191,7 @@ class SolidNode(Node):
         try:
             solid, node_cfg = apply_changes(self._solid, self._cfg, params)
             if solid != self._solid:
-                with self._det_lock:
+                with self._det_lock, self._verify_lock:
                     _update_detector_config(self._detector, solid)
         except ConfigError as err:
             return SetParametersResult(successful=False, reason=str(err))
@@ -264,10 +282,11 @@ class SolidNode(Node):
                     self._cv.notify_all()
 
     def _process(self, points: npt.NDArray[np.floating], stamp_ns: int) -> None:
+        """Stage 1: describe, search and store; hand the keyframe to the verification stage."""
         t0 = time.perf_counter()
         pose = self._pose_for(stamp_ns)
         with self._det_lock:
-            cands = self._detector.process(points, stamp_ns, pose=pose)
+            proposal = self._detector.propose(points, stamp_ns, pose=pose)
         self._times_ms.append((time.perf_counter() - t0) * 1e3)
         self.stats.processed += 1
         if pose is None and self._cfg.use_odom:
@@ -277,10 +296,60 @@ class SolidNode(Node):
             self._positions[stamp_ns] = pose[:3, 3].copy()
             while len(self._positions) > self._solid.capacity:
                 del self._positions[next(iter(self._positions))]
+        if proposal is None:
+            return
+        self._stage_ms['describe'].append(proposal.describe_ms)
+        self._stage_ms['search'].append(proposal.search_ms)
+        with self._cv:
+            if len(self._proposals) >= max(_MIN_PROPOSALS, self._cfg.queue_size):
+                self._proposals.popleft()
+                self.stats.verify_skipped += 1
+                self.get_logger().warning(
+                    'verification falls behind: dropped the oldest waiting keyframe '
+                    f'({self.stats.verify_skipped} so far; its cloud is not stored)',
+                    throttle_duration_sec=_WARN_THROTTLE_SEC)
+            self._proposals.append((proposal, pose))
+            self._cv.notify_all()
+
+    def _run_verify(self) -> None:
+        """Stage 2 thread: verify keyframes in order, publish their loops."""
+        while True:
+            with self._cv:
+                while not self._proposals and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                proposal, pose = self._proposals.popleft()
+                self._verifying = True
+            try:
+                with self._verify_lock:
+                    cands = self._detector.verify(proposal)
+                    verify_ms = self._detector.times.verify
+                self._stage_ms['verify'].append(verify_ms)
+                self._publish(cands, pose)
+            except Exception as err:  # the thread must survive any bad keyframe
+                self.stats.failed += 1
+                self.get_logger().error(f'verification failed: {type(err).__name__}: {err}',
+                                        throttle_duration_sec=_WARN_THROTTLE_SEC)
+            finally:
+                with self._cv:
+                    self._verifying = False
+                    self._cv.notify_all()
+
+    def _publish(self, cands: Sequence[LoopCandidate],
+                 pose: npt.NDArray[np.float64] | None) -> None:
         if not cands:
             return
         self.stats.loops += len(cands)
         self._pub_cands.publish(self._candidates_msg(cands))
+        for c in cands:
+            t = ', '.join(f'{v:.2f}' for v in c.pose[:3])
+            state = (f'verified, fitness {c.fitness:.2f}, rmse {c.rmse:.3f} m' if c.verified
+                     else 'descriptor only')
+            self.get_logger().info(
+                f'loop: keyframe {c.query_index} ({_sec(c.query_stamp_ns)}) -> session '
+                f'{c.match_session} keyframe {c.match_index} ({_sec(c.match_stamp_ns)}), '
+                f'{state}, yaw {math.degrees(c.yaw):.1f} deg, t ({t}) m')
         self._add_edges(cands, pose)
 
     def _candidates_msg(self, cands: Sequence[Any]) -> Float64MultiArray:
@@ -332,7 +401,7 @@ class SolidNode(Node):
             response.success, response.message = False, 'database_save_path is empty'
             return response
         try:
-            with self._det_lock:
+            with self._det_lock, self._verify_lock:
                 size = self._db_size()
                 _save_atomic(self._detector, path)
         except (SolidError, OSError) as err:
@@ -346,7 +415,8 @@ class SolidNode(Node):
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:
         with self._cv:
             self._queue.clear()
-        with self._det_lock:
+            self._proposals.clear()
+        with self._det_lock, self._verify_lock:
             self._detector = self._new_detector(load=False)
         self._edges.clear()
         self._positions.clear()
@@ -358,10 +428,10 @@ class SolidNode(Node):
         return int(self._detector.database.size)
 
     def wait_idle(self, timeout: float) -> bool:
-        """Block until the queue is empty and the worker idle; return False on timeout."""
+        """Block until both stages are idle with nothing waiting; return False on timeout."""
         deadline = time.monotonic() + timeout
         with self._cv:
-            while self._queue or self._busy:
+            while self._queue or self._busy or self._proposals or self._verifying:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
@@ -373,10 +443,11 @@ class SolidNode(Node):
         times = np.asarray(self._times_ms, dtype=np.float64)
         pct = (np.percentile(times, [50, 95, 99]) if times.size else np.full(3, np.nan))
         status = DiagnosticStatus(name='solid_node: loop detector', hardware_id='solid_ros')
-        status.level = DiagnosticStatus.WARN if (s.skipped or s.failed) else DiagnosticStatus.OK
+        status.level = (DiagnosticStatus.WARN if (s.skipped or s.failed or s.verify_skipped)
+                        else DiagnosticStatus.OK)
         status.message = (f'{s.processed} processed, {s.skipped} skipped, {s.rejected} rejected, '
                           f'{s.loops} loops')
-        values = {
+        values: dict[str, object] = {
             'clouds_received': s.received, 'clouds_processed': s.processed,
             'clouds_skipped': s.skipped, 'clouds_rejected': s.rejected,
             'clouds_failed': s.failed, 'clouds_without_odom': s.without_odom,
@@ -386,18 +457,31 @@ class SolidNode(Node):
             'processing_ms_p99': f'{pct[2]:.2f}',
             'processing_ms_max': f'{times.max():.2f}' if times.size else 'nan',
         }
+        for stage, ms in self._stage_ms.items():
+            arr = np.asarray(ms, dtype=np.float64)
+            p50, p95 = np.percentile(arr, [50, 95]) if arr.size else (math.nan, math.nan)
+            values[f'{stage}_ms_p50'], values[f'{stage}_ms_p95'] = f'{p50:.2f}', f'{p95:.2f}'
+        det = self._detector
+        values['verify_queue_length'] = len(self._proposals)
+        values['verify_skipped'] = s.verify_skipped
+        values['keyframe_clouds'] = len(det.clouds)
+        values['keyframe_clouds_mb'] = f'{det.clouds.nbytes / 1e6:.2f}'
+        values['keyframe_clouds_dropped'] = det.clouds.dropped
+        for reason, count in sorted(dict(det.reasons).items()):
+            values[f'verify_{reason}'] = count
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(msg)
 
     def destroy_node(self) -> None:
-        """Stop and join the worker thread, then destroy the node."""
+        """Stop and join the worker threads, then destroy the node."""
         with self._cv:
             self._stop = True
             self._cv.notify_all()
-        if self._worker.is_alive() and self._worker is not threading.current_thread():
-            self._worker.join(timeout=10.0)
+        for thread in (self._worker, self._verifier):
+            if thread.is_alive() and thread is not threading.current_thread():
+                thread.join(timeout=10.0)
         super().destroy_node()
 
 

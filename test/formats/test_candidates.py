@@ -109,3 +109,22 @@ def test_real_rclpy_message_decodes() -> None:
     msg.data = rows.reshape(-1).tolist()
     out = decode_candidates(msg)
     assert [o['query_stamp_ns'] for o in out] == [c.query_stamp_ns for c in CANDS]
+
+
+def test_pose_columns_round_trip_and_old_layout_decodes() -> None:
+    cov = tuple(float(i) for i in range(36))
+    cand = LoopCandidate(9, 2, 5_000_000_000, 1_000_000_000, 0, 0.1, 0.5, 0.2, verified=True,
+                         pose=(1.0, -2.0, 0.5, 0.0, 0.0, 0.2474, 0.9689), fitness=0.8,
+                         rmse=0.03, covariance=cov, reason='verified')
+    (got,) = decode_candidates(_msg(to_rows([cand])))
+    assert got['verified'] == 1 and isinstance(got['verified'], int)
+    assert [got[c] for c in ('tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw')] == list(cand.pose)
+    assert (got['fitness'], got['rmse']) == (0.8, 0.03)
+    assert [got[f'cov_{i}'] for i in range(36)] == list(cov)
+    # A 10-column message of an older publisher: the new columns decode as unknown.
+    old = to_rows([cand])[:, :10]
+    msg = _msg(old, labels=','.join(COLUMNS[:10]))
+    msg.layout.dim[0].stride, msg.layout.dim[1].size, msg.layout.dim[1].stride = 10, 10, 10
+    (got,) = decode_candidates(msg)
+    assert got['verified'] == 0 and np.isnan(got['tx']) and np.isnan(got['cov_35'])
+    assert got['query_stamp_ns'] == 5_000_000_000

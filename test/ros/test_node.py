@@ -275,6 +275,9 @@ def test_hku1_bag_replay_finds_the_revisit(harness: Callable[..., Harness],
     want = offline(hku1, twin.config, twin)
     assert got == want
     assert _revisits(got, hku1), got
+    # Every published loop was verified and carries its pose and covariance.
+    assert all(c['verified'] == 1 and 0.0 < c['fitness'] <= 1.0 and c['cov_0'] > 0.0
+               for c in h.candidates)
     assert h.node.stats.processed == sum(1 for k, _ in hku1 if k == 'points')
     assert h.node.stats.skipped == 0 and h.node.stats.rejected == 0
     # Odometry was paired, so the loop edges were drawn between keyframe positions.
@@ -292,6 +295,9 @@ def test_hku1_bag_replay_finds_the_revisit(harness: Callable[..., Harness],
     # The preset's keyframe gating stores fewer scans than it processes, as offline.
     assert int(values['database_size']) == twin.num_keyframes < h.node.stats.processed
     assert float(values['processing_ms_p50']) > 0.0
+    # Per-stage times and what verification decided.
+    assert float(values['describe_ms_p50']) > 0.0 and float(values['verify_ms_p50']) > 0.0
+    assert int(values['verify_verified']) == len(got) and int(values['keyframe_clouds']) > 0
 
 
 def test_bag_written_in_tmp_path(harness: Callable[..., Harness], hku1: list[tuple[str, Any]],
