@@ -327,6 +327,12 @@ class NodeConfig(_Schema):
                                  read_only=True)
     diagnostics_period_sec: float = _p(1.0, 'Period of /diagnostics messages', low=0.05,
                                        high=3600.0, read_only=True)
+    peers: bool = _p(False, 'Exchange keyframe descriptors with other robots (robot id = '
+                     'session_id) and publish verified inter-robot loops', read_only=True)
+    peer_timeout_sec: float = _p(1.0, 'Wait this long for a peer keyframe cloud before the '
+                                 'candidate is dropped', low=0.01, high=60.0)
+    peer_catchup: int = _p(2000, 'Most stored descriptors sent to a robot that joins late '
+                           '(and asked for at start)', low=0, high=1_000_000, read_only=True)
 
 
 def param_specs() -> tuple[ParamSpec, ...]:

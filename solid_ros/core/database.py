@@ -19,6 +19,7 @@ neither matches nor is matched.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -101,10 +102,12 @@ class DescriptorDatabase:
         self._sentinel = np.full(self.num_range, -1.0 / math.sqrt(self.num_range), np.float32)
         self._next = 0  # next sequence number
         self._size = 0
-        self._session_start = 0  # first seq of the current session
         self._session_count = 0  # scans added in the current session (the next index)
         self._last_stamp: int | None = None
         self._monotone = True  # current-session stamps never decreased
+        # Sequence numbers of this session's scans, oldest first (scans of other sessions,
+        # e.g. peer robots, may be interleaved with them).
+        self._own: deque[int] = deque()
         self._tree: cKDTree | None = None
         self._tree_seqs: Int64Array = np.zeros(0, dtype=np.int64)
         self._tree_hi = 0  # the tree holds scans with seq < _tree_hi
@@ -214,6 +217,7 @@ class DescriptorDatabase:
             The index of the scan within the current session.
         """
         index = self._session_count
+        self._own.append(self._next)
         self._put(r_solid, a_solid, int(stamp_ns), index, self.session_id, pose)
         self._session_count += 1
         if self._last_stamp is not None and stamp_ns < self._last_stamp:
@@ -221,6 +225,43 @@ class DescriptorDatabase:
         self._last_stamp = int(stamp_ns)
         self._maybe_rebuild()
         return index
+
+    def sessions(self) -> set[int]:
+        """Session ids of the stored scans."""
+        return {int(v) for v in np.unique(self._session[:self._size])}
+
+    def own_seq(self, index: int) -> int | None:
+        """Sequence number of this session's scan ``index``, or None when not stored."""
+        own = self._own
+        while own and own[0] < self.oldest_seq:
+            own.popleft()
+        k = int(index) - (self._session_count - len(own))
+        return own[k] if 0 <= k < len(own) else None
+
+    def add_foreign(self, session: int, index: int, r_solid: npt.ArrayLike,
+                    a_solid: npt.ArrayLike, stamp_ns: int,
+                    pose: Sequence[float] | npt.ArrayLike | None = None) -> int:
+        """Store a scan of another session (a peer robot's keyframe) while this one runs.
+
+        Such scans are never excluded as recent and evict like any other.
+
+        Args:
+            session: its session (robot) id; not this database's ``session_id``.
+            index: its index within that session.
+            r_solid, a_solid, stamp_ns, pose: as for :meth:`add`.
+
+        Returns:
+            Its sequence number.
+
+        Raises:
+            DatabaseError: the session is this database's own, or a shape is wrong.
+        """
+        if int(session) == self.session_id:
+            raise DatabaseError(f"session {session} is this database's own session id")
+        seq = self._next
+        self._put(r_solid, a_solid, int(stamp_ns), int(index), int(session), pose)
+        self._maybe_rebuild()
+        return seq
 
     def _put(self, r_solid: npt.ArrayLike, a_solid: npt.ArrayLike, stamp_ns: int, index: int,
              session: int, pose: Sequence[float] | npt.ArrayLike | None) -> None:
@@ -299,23 +340,30 @@ class DescriptorDatabase:
         return self._rerank(q, seqs, k)
 
     def _exclusion(self, stamp_ns: int, frames: int, sec: float) -> tuple[int, int | None]:
-        """Return ``cut`` (current-session scans with seq >= cut are excluded) and, when the
-        stamps are not monotone, the stamp above which scans are also excluded."""
-        start = max(self._session_start, self.oldest_seq)
-        cut = max(start, self._next - frames)
-        if sec <= 0.0 or start >= self._next:
+        """Return ``cut`` (this session's scans with seq >= cut are excluded) and, when the
+        stamps are not monotone, the stamp above which its scans are also excluded."""
+        own = self._own
+        while own and own[0] < self.oldest_seq:
+            own.popleft()
+        if not own:
+            return self._next, None
+        if frames <= 0:
+            cut = self._next
+        else:
+            cut = own[max(len(own) - frames, 0)]
+        if sec <= 0.0:
             return cut, None
         limit = stamp_ns - int(round(sec * 1e9))
         if not self._monotone:
             return cut, limit
-        lo, hi = start, self._next  # first seq in [start, next) with stamp > limit
+        lo, hi = 0, len(own)  # first of this session's scans with stamp > limit
         while lo < hi:
             mid = (lo + hi) // 2
-            if self._stamp[mid % self.capacity] > limit:
+            if self._stamp[own[mid] % self.capacity] > limit:
                 hi = mid
             else:
                 lo = mid + 1
-        return min(cut, lo), None
+        return min(cut, own[lo] if lo < len(own) else self._next), None
 
     def _slot_ranges(self, seq_lo: int, seq_hi: int) -> list[tuple[int, int]]:
         """Slot ranges of the stored sequence numbers ``[seq_lo, seq_hi)``."""
@@ -329,8 +377,10 @@ class DescriptorDatabase:
     def _time_excluded(self, seqs: Int64Array, limit: int | None) -> npt.NDArray[np.bool_]:
         if limit is None:
             return np.zeros(len(seqs), dtype=bool)
-        current = seqs >= self._session_start
-        return current & (self._stamp[seqs % self.capacity] > limit)
+        slots = seqs % self.capacity
+        out: npt.NDArray[np.bool_] = ((self._session[slots] == self.session_id)
+                                      & (self._stamp[slots] > limit))
+        return out
 
     def _search_brute(self, q: npt.NDArray[np.float64], k: int, cut: int,
                       limit: int | None) -> Int64Array:
@@ -343,15 +393,19 @@ class DescriptorDatabase:
             return np.zeros(0, dtype=np.int64)
         q32 = q.astype(np.float32)
         everything = seq_hi - seq_lo == self._size
+        own = self.session_id
         if everything:  # positions in `dots` are slots: no gather copy
             dots = self._r[:self._size] @ q32
             for a, b in self._slot_ranges(max(cut, seq_lo), seq_hi):
-                dots[a:b] = -np.inf
+                recent = dots[a:b]  # a view: only this session's recent scans are excluded
+                recent[self._session[a:b] == own] = -np.inf
         else:  # positions are seq - seq_lo
             slots = np.concatenate([np.arange(a, b)
                                     for a, b in self._slot_ranges(seq_lo, seq_hi)])
             dots = self._r[slots] @ q32
-            dots[max(cut - seq_lo, 0):] = -np.inf
+            first = max(cut - seq_lo, 0)
+            recent = dots[first:]
+            recent[self._session[slots[first:]] == own] = -np.inf
         if limit is not None:
             seqs = (self._seqs_of_slots(np.arange(self._size)) if everything
                     else np.arange(seq_lo, seq_hi, dtype=np.int64))
@@ -383,7 +437,9 @@ class DescriptorDatabase:
             idx = np.atleast_1d(idx)
             idx = idx[idx < n_tree]
             seqs = tree_seqs[idx]
-            valid = (seqs >= oldest) & (seqs < cut) & ~self._time_excluded(seqs, limit)
+            mine = self._session[seqs % self.capacity] == self.session_id
+            valid = ((seqs >= oldest) & ((seqs < cut) | ~mine)
+                     & ~self._time_excluded(seqs, limit))
             if int(valid.sum()) >= k or kq >= n_tree:
                 break
             kq = min(n_tree, 2 * kq)
@@ -457,7 +513,6 @@ class DescriptorDatabase:
         self._flags[slots] = np.where(has_r, _HAS_R, 0) | np.where(has_pose, _HAS_POSE, 0)
         self._next += count
         self._size = min(self._size + count, self.capacity)
-        self._session_start = self._next
         self._maybe_rebuild(force=True)
 
 

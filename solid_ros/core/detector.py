@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,12 +51,15 @@ from solid_ros.core.geometry import (
 )
 from solid_ros.core.keyframes import CloudStore
 from solid_ros.core.matching import estimate_yaw, heading_hypotheses
+from solid_ros.core.registration import KeyframeCloud
 from solid_ros.core.verification import Verification, Verifier
 
-__all__ = ['LoopCandidate', 'LoopDetector', 'Proposal', 'StageTimes']
+__all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'StageTimes']
 
 FloatArray = npt.NDArray[np.float64]
 _NAN_COV: tuple[float, ...] = (math.nan,) * 36
+# (session, index, stamp_ns) of a peer's keyframe -> its cloud, or why there is none.
+CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | str']
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 _INT64 = (-(2**63), 2**63 - 1)
@@ -165,6 +169,8 @@ class Proposal:
         stamp_ns: its stamp.
         seq: its database sequence number.
         heading: its heading signature.
+        r_solid: its R-SOLiD (shared with peer robots).
+        pose: its pose vector ``(x, y, z, qx, qy, qz, qw)``, when known.
         cloud_points: its keyframe cloud points (levelled, gated, clipped, voxelised), or
             None without verification.
         hits: descriptor candidates, nearest first.
@@ -177,6 +183,8 @@ class Proposal:
     seq: int
     heading: FloatArray
     cloud_points: FloatArray | None
+    r_solid: FloatArray | None = None
+    pose: FloatArray | None = None
     hits: list[_Hit] = field(default_factory=list)
     describe_ms: float = math.nan
     search_ms: float = math.nan
@@ -217,6 +225,10 @@ class LoopDetector:
         self._kf_stamp: int | None = None
         self._kf_pose: FloatArray | None = None
         self._last_loop_query: int | None = None
+        # Where clouds of other robots' keyframes come from (the node asks the owner); it
+        # returns the cloud or the reason there is none. None: such candidates stay unverified.
+        self.fetch_cloud: CloudFetcher | None = None
+        self._loaded = self.database.sessions() - {cfg.session_id}
 
     @property
     def config(self) -> SolidConfig:
@@ -385,7 +397,7 @@ class LoopDetector:
         self.last_was_keyframe = True
         self._kf_stamp, self._kf_pose = stamp, vec
         return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
-                        chosen)
+                        np.asarray(desc.r_solid, dtype=np.float64), vec, chosen)
 
     def verify(self, proposal: Proposal) -> list[LoopCandidate]:
         """Verification stage for one :meth:`propose` result; call in keyframe order.
@@ -448,7 +460,20 @@ class LoopDetector:
         verifier = self.verifier
         assert verifier is not None
         cfg = self._config
-        clouds = [self.clouds.get(h.match.seq) for h in proposal.hits]
+        clouds: list[KeyframeCloud | None] = []
+        fetched: dict[int, str] = {}
+        for i, h in enumerate(proposal.hits):
+            cloud = self.clouds.get(h.match.seq)
+            if (cloud is None and self.fetch_cloud is not None and not gap_blocked
+                    and h.match.session != cfg.session_id
+                    and h.match.session not in self._loaded_sessions()):
+                got = self.fetch_cloud(h.match.session, h.match.index, h.match.stamp_ns)
+                if isinstance(got, KeyframeCloud):
+                    self.clouds.put(h.match.seq, got)
+                    cloud = got
+                else:
+                    fetched[i] = got
+            clouds.append(cloud)
         if proposal.cloud_points is None:  # process_descriptor: nothing to register
             clouds = [None] * len(clouds)
         query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
@@ -464,6 +489,9 @@ class LoopDetector:
                                       cfg.heading_match)
             yaws[i] = hyps[0][0] if hyps else 0.0
             if gap_blocked:
+                continue
+            if i in fetched:  # a peer's cloud that did not come
+                results[i] = Verification(False, fetched[i], np.eye(4))
                 continue
             key = (hit.match.session, hit.match.seq)
             c = verifier.coarse(query, key, cloud, [y for y, _ in hyps])
@@ -491,6 +519,10 @@ class LoopDetector:
         out.sort(key=lambda c: (not c.verified, -_nan_to(c.overlap, -1.0)))
         return out
 
+    def _loaded_sessions(self) -> set[int]:
+        """Sessions loaded from a database file (their clouds came with it or not at all)."""
+        return self._loaded
+
     def _unlevel_pose(self, T: FloatArray) -> tuple[float, ...]:
         if self._levelled:
             m = np.eye(4)
@@ -505,6 +537,47 @@ class LoopDetector:
         b[:3, :3] = b[3:, 3:] = self._mount.T
         out: FloatArray = b @ cov @ b.T
         return out
+
+    # -------------------------------------------------------------------------- peer robots
+
+    def add_peer_keyframe(self, session: int, index: int, stamp_ns: int,
+                          r_solid: npt.ArrayLike, heading: npt.ArrayLike,
+                          pose: Any = None) -> int:
+        """Store another robot's keyframe descriptor (a further session) so that this
+        robot's queries find it; its cloud is fetched through :attr:`fetch_cloud` only when a
+        query's candidate needs it.
+
+        Returns:
+            Its database sequence number.
+
+        Raises:
+            SolidError: bad stamp, shape or pose, or ``session`` is this robot's own.
+        """
+        vec = pose_to_vector(pose) if pose is not None else None
+        return self.database.add_foreign(int(session), int(index), r_solid, heading,
+                                         _stamp(stamp_ns), vec)
+
+    def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
+                                                      FloatArray | None]]:
+        """The newest ``limit`` stored keyframes of this session as ``(index, stamp_ns,
+        R-SOLiD, heading, pose or None)``, oldest first (unit vectors, as stored)."""
+        db = self.database
+        out = []
+        for index in range(max(db.session_count - limit, 0), db.session_count):
+            seq = db.own_seq(index)
+            if seq is None:
+                continue
+            _, _, stamp = db.match_info(seq)
+            pose = db.pose(seq)
+            out.append((index, stamp, np.asarray(db.r_solid(seq), dtype=np.float64),
+                        np.asarray(db.a_solid(seq), dtype=np.float64),
+                        None if pose is None else np.asarray(pose, dtype=np.float64)))
+        return out
+
+    def own_cloud(self, index: int) -> KeyframeCloud | None:
+        """The stored cloud of this session's keyframe ``index`` (None: evicted or none)."""
+        seq = self.database.own_seq(index)
+        return None if seq is None else self.clouds.get(seq)
 
     # --------------------------------------------------------------------------- persistence
 

@@ -45,11 +45,14 @@ from solid_ros.core.config import NodeConfig, SolidConfig
 from solid_ros.core.detector import LoopCandidate, LoopDetector, Proposal
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
 from solid_ros.core.persistence import check_save_target, remove_stale_temporaries
+from solid_ros.core.registration import KeyframeCloud
 from solid_ros.formats.candidates import layout_dims, to_rows
+from solid_ros.formats.peers import DescriptorMessage
 from solid_ros.formats.pointcloud2 import cloud_to_xyz
 from solid_ros.formats.poses import PoseError, odometry_to_pose
 from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
 from solid_ros.ros.params import apply_changes, declare_all
+from solid_ros.ros.peers import PeerLink
 from solid_ros.tools.runtime import tune_allocator, tune_thread_switching
 
 __all__ = ['NodeStats', 'SolidNode', 'main']
@@ -74,6 +77,7 @@ class NodeStats:
     loops: int = 0
     without_odom: int = 0
     verify_skipped: int = 0
+    inter_robot_loops: int = 0
 
 
 def _sec(stamp_ns: int) -> str:
@@ -145,6 +149,15 @@ class SolidNode(Node):
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_timer(self._cfg.diagnostics_period_sec, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._peers: PeerLink | None = None
+        if self._cfg.peers:
+            self._peers = PeerLink(
+                self, self._solid.session_id, self._solid.fingerprint(),
+                self._cfg.peer_timeout_sec, self._cfg.peer_catchup,
+                add_keyframe=self._peer_add, own_cloud=self._peer_cloud,
+                own_keyframes=self._peer_keyframes)
+            self._detector.fetch_cloud = self._peers.fetch
+            self._peers.start()
         self._worker = threading.Thread(target=self._run, name='solid_describe', daemon=True)
         self._verifier = threading.Thread(target=self._run_verify, name='solid_verify',
                                           daemon=True)
@@ -196,6 +209,8 @@ class SolidNode(Node):
         except ConfigError as err:
             return SetParametersResult(successful=False, reason=str(err))
         self._solid, self._cfg = solid, node_cfg
+        if self._peers is not None:
+            self._peers.timeout_sec = node_cfg.peer_timeout_sec
         return SetParametersResult(successful=True)
 
     # -- input -------------------------------------------------------------------------------
@@ -298,6 +313,8 @@ class SolidNode(Node):
                 del self._positions[next(iter(self._positions))]
         if proposal is None:
             return
+        if self._peers is not None:
+            self._peers.share(proposal)
         self._stage_ms['describe'].append(proposal.describe_ms)
         self._stage_ms['search'].append(proposal.search_ms)
         with self._cv:
@@ -341,6 +358,9 @@ class SolidNode(Node):
         if not cands:
             return
         self.stats.loops += len(cands)
+        self.stats.inter_robot_loops += sum(
+            1 for c in cands if self._peers is not None
+            and c.match_session in self._peers.robots)
         self._pub_cands.publish(self._candidates_msg(cands))
         for c in cands:
             t = ', '.join(f'{v:.2f}' for v in c.pose[:3])
@@ -351,6 +371,24 @@ class SolidNode(Node):
                 f'{c.match_session} keyframe {c.match_index} ({_sec(c.match_stamp_ns)}), '
                 f'{state}, yaw {math.degrees(c.yaw):.1f} deg, t ({t}) m')
         self._add_edges(cands, pose)
+
+    # -- peer robots (see solid_ros.ros.peers) ---------------------------------------------------
+
+    def _peer_add(self, d: DescriptorMessage) -> None:
+        with self._det_lock:
+            self._detector.add_peer_keyframe(d.robot, d.index, d.stamp_ns, d.r_solid, d.heading,
+                                             d.pose)
+
+    def _peer_cloud(self, index: int) -> KeyframeCloud | None:
+        # Not under the verification lock: the verify thread may hold it while it waits for
+        # a peer's reply, and this runs on the executor that delivers that reply.
+        with self._det_lock:
+            seq = self._detector.database.own_seq(index)
+        return None if seq is None else self._detector.clouds.get(seq)
+
+    def _peer_keyframes(self, limit: int) -> list[Any]:
+        with self._det_lock:
+            return self._detector.own_keyframes(limit)
 
     def _candidates_msg(self, cands: Sequence[Any]) -> Float64MultiArray:
         rows = to_rows(cands)
@@ -418,6 +456,8 @@ class SolidNode(Node):
             self._proposals.clear()
         with self._det_lock, self._verify_lock:
             self._detector = self._new_detector(load=False)
+            if self._peers is not None:
+                self._detector.fetch_cloud = self._peers.fetch
         self._edges.clear()
         self._positions.clear()
         response.success, response.message = True, 'database cleared'
@@ -442,7 +482,8 @@ class SolidNode(Node):
         s = self.stats
         times = np.asarray(self._times_ms, dtype=np.float64)
         pct = (np.percentile(times, [50, 95, 99]) if times.size else np.full(3, np.nan))
-        status = DiagnosticStatus(name='solid_node: loop detector', hardware_id='solid_ros')
+        status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: loop detector',
+                                  hardware_id='solid_ros')
         status.level = (DiagnosticStatus.WARN if (s.skipped or s.failed or s.verify_skipped)
                         else DiagnosticStatus.OK)
         status.message = (f'{s.processed} processed, {s.skipped} skipped, {s.rejected} rejected, '
@@ -469,6 +510,9 @@ class SolidNode(Node):
         values['keyframe_clouds_dropped'] = det.clouds.dropped
         for reason, count in sorted(dict(det.reasons).items()):
             values[f'verify_{reason}'] = count
+        values['inter_robot_loops'] = s.inter_robot_loops
+        if self._peers is not None:
+            values.update(self._peers.diagnostics())
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()

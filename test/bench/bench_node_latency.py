@@ -4,11 +4,14 @@ Run: .venv/bin/python test/bench/bench_node_latency.py [--duration 30] [--rates 
 
 The node runs in its own process (``python -m solid_ros.ros.node``, HDL-64 preset) with settings
 that make every scan a query with one candidate (exclude_recent_frames 0, threshold 2.0), so
-each published cloud yields one candidate message. The publisher sends KITTI scan 313
-(~121k points), rotated and jittered per message, at 10 Hz for ``--duration`` seconds and
-prints median / p95 / max latency and the skipped-cloud count from /diagnostics; then it
-steps the rate up (``--rates``) to find the highest rate sustained without skips.
-Timings are noisy on a shared machine; re-run on an idle one for published figures.
+each published cloud yields one candidate message. By default registration is off
+(``verify:=false``): the descriptor path alone; ``--verify`` measures the time to a verified
+loop (every scan is the same place turned, so every candidate is registered). The publisher
+sends KITTI scan 313 (~121k points), rotated and jittered per message, at 10 Hz for
+``--duration`` seconds and prints median / p95 / max latency and the skipped-cloud count
+from /diagnostics; then it steps the rate up (``--rates``) to find the highest rate
+sustained without skips. Timings are noisy on a shared machine; re-run on an idle one for
+published figures.
 """
 
 from __future__ import annotations
@@ -50,6 +53,9 @@ def main() -> int:
                         help='rates (Hz) tried after 10 Hz to find the sustained maximum')
     parser.add_argument('--step-duration', type=float, default=10.0,
                         help='seconds per stepped rate')
+    parser.add_argument('--verify', action='store_true',
+                        help='keep registration on: latency to a verified loop (default: '
+                             'verify:=false, the descriptor path alone)')
     args = parser.parse_args()
     pcd = DATA / 'kitti' / 'pcd' / '000313.pcd'
     if not pcd.is_file():
@@ -74,7 +80,8 @@ def main() -> int:
     node_cmd = [sys.executable, '-m', 'solid_ros.ros.node', '--ros-args', '--params-file',
                 str(ROOT / 'config' / 'hdl64.yaml'), '-p', 'exclude_recent_frames:=0',
                 '-p', 'distance_threshold:=2.0', '-p', 'qos_reliability:=reliable',
-                '-p', 'use_odom:=false', '-p', 'diagnostics_period_sec:=0.5']
+                '-p', 'use_odom:=false', '-p', 'diagnostics_period_sec:=0.5',
+                '-p', f'verify:={"true" if args.verify else "false"}']
     proc = subprocess.Popen(node_cmd, env=dict(os.environ), stderr=subprocess.PIPE, text=True)
 
     rclpy.init()

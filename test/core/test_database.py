@@ -199,3 +199,27 @@ def test_import_refuses_same_session_id() -> None:
     new = _db(session_id=4)
     with pytest.raises(DatabaseError, match='session_id 4.*e.g. 5'):
         new.import_arrays(old.export_arrays())
+
+
+@pytest.mark.parametrize('search', ['brute', 'kdtree'])
+def test_peer_scans_interleave_without_shrinking_the_exclusion(search: str) -> None:
+    cfg = SolidConfig().replace(search=search, kdtree_rebuild_every=1, session_id=4)
+    db = DescriptorDatabase(cfg)
+    rng = np.random.default_rng(5)
+    mine = rng.random((12, 40))
+    peers = rng.random((12, 40))
+    for i in range(12):
+        db.add(mine[i], np.ones(60), i * SEC)
+        db.add_foreign(9, 100 + i, peers[i], np.ones(60), i * SEC)
+    assert db.session_count == 12 and db.size == 24
+    # The newest 5 of this session are excluded; every peer scan stays eligible.
+    got = db.search(mine[11], 12 * SEC, k=30, exclude_frames=5)
+    own = sorted(m.index for m in got if m.session == 4)
+    assert own == list(range(7)) and len([m for m in got if m.session == 9]) == 12
+    # The time rule also applies to this session only.
+    got = db.search(peers[11], 12 * SEC, k=30, exclude_sec=3.5)
+    assert max(m.index for m in got if m.session == 4) == 8
+    assert {m.index for m in got if m.session == 9} == set(range(100, 112))
+    assert db.search(peers[11], 12 * SEC, k=1)[0].session == 9
+    with pytest.raises(DatabaseError, match='own session'):
+        db.add_foreign(4, 0, mine[0], np.ones(60), 0)

@@ -1,0 +1,212 @@
+"""Messages robots exchange: keyframe descriptors, cloud requests and replies, catch-up.
+
+Each message is the ``data`` of a ``std_msgs/UInt8MultiArray`` (no custom interface package
+to build), little-endian, starting with a 4-byte kind and a version byte:
+
+``SLD1`` descriptor (``/solid/descriptors``)::
+
+    4s kind, u8 version, u8 flags (bit 0: pose follows), u16 reserved,
+    i32 robot, i64 keyframe index, i64 stamp ns, 8s settings fingerprint,
+    u16 N_r, u16 N_a, f32[N_r] R-SOLiD (unit), f32[N_a] heading signature (unit),
+    [f32[7] pose x y z qx qy qz qw]
+
+    40 bytes + 4 (N_r + N_a): 440 bytes for the usual 40 x 60 bins.
+
+``SLQ1`` cloud request (``/solid/cloud_requests``)::
+
+    4s, u8 version, u8, u16, i32 requester, i32 owner, i64 keyframe index, u32 request id
+
+``SLC1`` cloud reply (``/solid/clouds``)::
+
+    4s, u8 version, u8 status (0 ok, 1 evicted/unknown), u16, i32 owner, i32 requester,
+    i64 keyframe index, u32 request id, i32 structure points, u32 points,
+    f32[points][3] x y z (the keyframe cloud, structure first)
+
+``SLK1`` catch-up request (``/solid/cloud_requests``)::
+
+    4s, u8 version, u8, u16, i32 requester, u32 most descriptors wanted
+
+Decoding checks the kind, version, sizes against the byte count, limits and finiteness, and
+raises :class:`PeerMessageError` for anything else, so a malformed or hostile message is
+refused whole.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.errors import SolidError
+from solid_ros.core.registration import KeyframeCloud
+
+__all__ = ['CatchUpRequest', 'CloudReply', 'CloudRequest', 'DescriptorMessage',
+           'MAX_CLOUD_POINTS', 'PeerMessageError', 'decode', 'encode']
+
+VERSION = 1
+MAX_BINS = 4096
+MAX_CLOUD_POINTS = 2_000_000
+_DESC = struct.Struct('<4sBBHiqq8sHH')
+_REQ = struct.Struct('<4sBBHiiqI')
+_REPLY = struct.Struct('<4sBBHiiqIiI')
+_CATCH = struct.Struct('<4sBBHiI')
+_I32 = (-(2**31), 2**31 - 1)
+
+
+class PeerMessageError(SolidError, ValueError):
+    """A peer message that cannot be trusted: wrong kind, version, size or values."""
+
+
+@dataclass(frozen=True)
+class DescriptorMessage:
+    """One stored keyframe of a robot, as its descriptor."""
+
+    robot: int
+    index: int
+    stamp_ns: int
+    fingerprint: str
+    r_solid: npt.NDArray[np.float32]
+    heading: npt.NDArray[np.float32]
+    pose: tuple[float, ...] | None = None
+
+
+@dataclass(frozen=True)
+class CloudRequest:
+    """``requester`` asks ``owner`` for the cloud of its keyframe ``index``."""
+
+    requester: int
+    owner: int
+    index: int
+    request_id: int
+
+
+@dataclass(frozen=True)
+class CloudReply:
+    """The owner's answer: the cloud, or ``cloud`` None when it no longer has it."""
+
+    owner: int
+    requester: int
+    index: int
+    request_id: int
+    cloud: KeyframeCloud | None
+
+
+@dataclass(frozen=True)
+class CatchUpRequest:
+    """A robot that joined late asks every peer for up to ``limit`` stored descriptors."""
+
+    requester: int
+    limit: int
+
+
+Message = DescriptorMessage | CloudRequest | CloudReply | CatchUpRequest
+
+
+def _fingerprint_bytes(text: str) -> bytes:
+    try:
+        raw = bytes.fromhex(text)
+    except ValueError as err:
+        raise PeerMessageError(f'fingerprint {text!r} is not 16 hex digits') from err
+    if len(raw) != 8:
+        raise PeerMessageError(f'fingerprint {text!r} is not 16 hex digits')
+    return raw
+
+
+def encode(msg: Message) -> bytes:
+    """Bytes of one message (see the module docstring)."""
+    if isinstance(msg, DescriptorMessage):
+        r = np.ascontiguousarray(msg.r_solid, dtype='<f4').ravel()
+        a = np.ascontiguousarray(msg.heading, dtype='<f4').ravel()
+        flags = 1 if msg.pose is not None else 0
+        head = _DESC.pack(b'SLD1', VERSION, flags, 0, msg.robot, msg.index, msg.stamp_ns,
+                          _fingerprint_bytes(msg.fingerprint), len(r), len(a))
+        tail = np.asarray(msg.pose, dtype='<f4').tobytes() if msg.pose is not None else b''
+        return head + r.tobytes() + a.tobytes() + tail
+    if isinstance(msg, CloudRequest):
+        return _REQ.pack(b'SLQ1', VERSION, 0, 0, msg.requester, msg.owner, msg.index,
+                         msg.request_id)
+    if isinstance(msg, CloudReply):
+        if msg.cloud is None:
+            return _REPLY.pack(b'SLC1', VERSION, 1, 0, msg.owner, msg.requester, msg.index,
+                               msg.request_id, 0, 0)
+        pts = np.ascontiguousarray(msg.cloud.points, dtype='<f4').reshape(-1, 3)
+        return _REPLY.pack(b'SLC1', VERSION, 0, 0, msg.owner, msg.requester, msg.index,
+                           msg.request_id, msg.cloud.n_struct, len(pts)) + pts.tobytes()
+    return _CATCH.pack(b'SLK1', VERSION, 0, 0, msg.requester, msg.limit)
+
+
+def decode(data: bytes | bytearray | memoryview | npt.ArrayLike) -> Message:
+    """Parse one message.
+
+    Raises:
+        PeerMessageError: not a valid message of a known kind (the message says why).
+    """
+    raw = data if isinstance(data, (bytes, bytearray, memoryview)) else \
+        np.asarray(data, dtype=np.uint8).tobytes()
+    raw = bytes(raw)
+    if len(raw) < 5:
+        raise PeerMessageError(f'{len(raw)} bytes: too short for a peer message')
+    kind, version = raw[:4], raw[4]
+    if version != VERSION:
+        raise PeerMessageError(f'{kind!r} version {version}; this solid_ros reads {VERSION}')
+    if kind == b'SLD1':
+        return _descriptor(raw)
+    if kind == b'SLQ1':
+        _size(raw, _REQ.size, 'cloud request')
+        _, _, _, _, requester, owner, index, rid = _REQ.unpack(raw)
+        return CloudRequest(requester, owner, _index(index), rid)
+    if kind == b'SLC1':
+        return _reply(raw)
+    if kind == b'SLK1':
+        _size(raw, _CATCH.size, 'catch-up request')
+        _, _, _, _, requester, limit = _CATCH.unpack(raw)
+        return CatchUpRequest(requester, limit)
+    raise PeerMessageError(f'unknown message kind {kind!r}')
+
+
+def _size(raw: bytes, want: int, what: str) -> None:
+    if len(raw) != want:
+        raise PeerMessageError(f'{what} of {len(raw)} bytes; expected {want}')
+
+
+def _index(index: int) -> int:
+    if index < 0:
+        raise PeerMessageError(f'keyframe index {index} is negative')
+    return index
+
+
+def _descriptor(raw: bytes) -> DescriptorMessage:
+    if len(raw) < _DESC.size:
+        raise PeerMessageError(f'descriptor of {len(raw)} bytes: shorter than its header')
+    _, _, flags, _, robot, index, stamp, fp, n_r, n_a = _DESC.unpack_from(raw)
+    if not (0 < n_r <= MAX_BINS and 0 < n_a <= MAX_BINS):
+        raise PeerMessageError(f'descriptor sizes {n_r} x {n_a} out of range')
+    want = _DESC.size + 4 * (n_r + n_a) + (28 if flags & 1 else 0)
+    _size(raw, want, 'descriptor')
+    vals = np.frombuffer(raw, dtype='<f4', offset=_DESC.size).astype(np.float32)
+    if not np.all(np.isfinite(vals)):
+        raise PeerMessageError('descriptor holds NaN or infinite values')
+    r, a = vals[:n_r], vals[n_r:n_r + n_a]
+    if np.any(r < 0.0) or np.any(a < 0.0):
+        raise PeerMessageError('descriptor holds negative bins')
+    pose = tuple(float(v) for v in vals[n_r + n_a:]) if flags & 1 else None
+    return DescriptorMessage(robot, _index(index), stamp, fp.hex(), r, a, pose)
+
+
+def _reply(raw: bytes) -> CloudReply:
+    if len(raw) < _REPLY.size:
+        raise PeerMessageError(f'cloud reply of {len(raw)} bytes: shorter than its header')
+    _, _, status, _, owner, requester, index, rid, n_struct, n = _REPLY.unpack_from(raw)
+    if status == 1:
+        _size(raw, _REPLY.size, 'empty cloud reply')
+        return CloudReply(owner, requester, _index(index), rid, None)
+    if status != 0 or not 0 < n <= MAX_CLOUD_POINTS or not 0 <= n_struct <= n:
+        raise PeerMessageError(f'cloud reply status {status}, {n} points, {n_struct} '
+                               'structure points: out of range')
+    _size(raw, _REPLY.size + 12 * n, 'cloud reply')
+    pts = np.frombuffer(raw, dtype='<f4', offset=_REPLY.size).astype(np.float32).reshape(n, 3)
+    if not np.all(np.isfinite(pts)) or np.abs(pts).max() > 1e5:
+        raise PeerMessageError('cloud holds NaN, infinite or implausibly far points')
+    return CloudReply(owner, requester, _index(index), rid, KeyframeCloud(pts, n_struct))

@@ -1,0 +1,194 @@
+"""Robots share descriptors over real rclpy + Fast DDS and publish verified inter-robot loops.
+
+Two or three solid_node instances in one process (one namespace each, shared /solid/*
+topics), each fed a different stretch of the simulated drive; the simulator's poses are the
+truth for the inter-robot relative poses.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
+
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy_msgs import make_cloud  # noqa: E402
+from sensor_msgs.msg import PointCloud2  # noqa: E402
+from std_msgs.msg import Float64MultiArray, UInt8MultiArray  # noqa: E402
+
+from solid_ros.core.geometry import quaternion_to_matrix  # noqa: E402
+from solid_ros.formats.candidates import decode_candidates  # noqa: E402
+from solid_ros.formats.peers import CloudRequest, DescriptorMessage, encode  # noqa: E402
+from solid_ros.ros.node import SolidNode  # noqa: E402
+from solid_ros.ros.peers import DESCRIPTOR_TOPIC, REQUEST_TOPIC  # noqa: E402
+from solid_ros.sim.drive import Drive, DriveConfig  # noqa: E402
+from solid_ros.sim.lidar import hdl64  # noqa: E402
+
+TIMEOUT = 120.0
+SEC = 1_000_000_000
+
+
+@lru_cache(maxsize=1)
+def _drive() -> Drive:
+    return Drive(DriveConfig(seed=0, sensor=hdl64(points_per_ring=512)))
+
+
+@lru_cache(maxsize=512)
+def _scan(i: int) -> tuple[np.ndarray, np.ndarray, int]:
+    s = _drive().scan(i)
+    return s.points.copy(), s.pose, s.stamp_ns
+
+
+def _params(robot: int, **extra: Any) -> list[Parameter]:
+    values = {'session_id': robot, 'peers': True, 'use_odom': False, 'qos_reliability':
+              'reliable', 'qos_depth': 1000, 'queue_size': 1000, 'exclude_recent_frames': 20,
+              'num_candidates': 5, 'distance_threshold': 1.0, 'verify_voxel_size': 0.75,
+              'verify_coarse_voxel_size': 2.0, 'peer_timeout_sec': 3.0, **extra}
+    return [Parameter(k, value=v) for k, v in values.items()]
+
+
+class Fleet:
+    """Solid nodes under /r<id>, a client publishing their clouds and collecting loops."""
+
+    def __init__(self, ctx: Context) -> None:
+        self.ctx = ctx
+        self.nodes: dict[int, SolidNode] = {}
+        self.client = Node('fleet_client', context=ctx)
+        self.qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.pubs: dict[int, Any] = {}
+        self.loops: dict[int, list[dict[str, Any]]] = {}
+        self.executor = MultiThreadedExecutor(num_threads=4, context=ctx)
+        self.executor.add_node(self.client)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def add(self, robot: int, **extra: Any) -> SolidNode:
+        node = SolidNode(context=self.ctx, cli_args=['--ros-args', '-r', f'__ns:=/r{robot}'],
+                         parameter_overrides=_params(robot, **extra))
+        self.nodes[robot] = node
+        self.loops[robot] = []
+        self.pubs[robot] = self.client.create_publisher(PointCloud2, f'/r{robot}/points',
+                                                        self.qos)
+        self.client.create_subscription(
+            Float64MultiArray, f'/r{robot}/solid_node/loop_candidates',
+            lambda m, r=robot: self.loops[r].extend(decode_candidates(m)), self.qos)
+        self.executor.add_node(node)
+        self.wait_for(lambda: self.pubs[robot].get_subscription_count() > 0, 'points matched')
+        return node
+
+    def remove(self, robot: int) -> None:
+        node = self.nodes.pop(robot)
+        self.executor.remove_node(node)
+        node.destroy_node()
+
+    def wait_for(self, pred: Callable[[], bool], what: str, timeout: float = TIMEOUT) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(f'timed out waiting for {what}')
+            time.sleep(0.02)
+
+    def feed(self, robot: int, scans: list[int]) -> None:
+        node = self.nodes[robot]
+        sent = node.stats.received
+        for i in scans:
+            pts, _, stamp = _scan(i)
+            self.pubs[robot].publish(make_cloud(pts, stamp))
+            sent += 1
+            self.wait_for(lambda s=sent: node.stats.received >= s - 20, 'delivery')
+        self.wait_for(lambda: node.stats.received >= sent, 'all clouds received')
+        assert node.wait_idle(TIMEOUT)
+        self.wait_for(lambda: len(self.loops[robot]) >= node.stats.loops, 'all loops')
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        for node in self.nodes.values():
+            node.destroy_node()
+        self.client.destroy_node()
+        self.thread.join(timeout=10.0)
+
+
+@pytest.fixture()
+def fleet(context: Context) -> Iterator[Fleet]:
+    f = Fleet(context)
+    yield f
+    f.close()
+
+
+def _check(loops: list[dict[str, Any]], own: list[int], peers: dict[int, list[int]]
+           ) -> tuple[int, int]:
+    """(correct, false) inter-robot loops by the simulator's relative pose (1 m, 3 deg)."""
+    good = bad = 0
+    for c in loops:
+        if c['match_session'] not in peers:
+            continue
+        q = own[c['query_index']]
+        m = peers[c['match_session']][c['match_index']]
+        ref = np.linalg.inv(_scan(m)[1]) @ _scan(q)[1]
+        T = np.eye(4)
+        T[:3, :3] = quaternion_to_matrix(c['qx'], c['qy'], c['qz'], c['qw'])
+        T[:3, 3] = c['tx'], c['ty'], c['tz']
+        d = np.linalg.inv(ref) @ T
+        angle = math.degrees(math.acos(min(max((np.trace(d[:3, :3]) - 1) / 2, -1.0), 1.0)))
+        ok = c['verified'] == 1 and np.linalg.norm(d[:3, 3]) < 1.0 and angle < 3.0
+        good, bad = good + ok, bad + (not ok)
+    return good, bad
+
+
+def test_two_robots_find_each_others_places(fleet: Fleet) -> None:
+    a_scans = list(range(0, 60))
+    b_scans = list(range(268, 330))  # drives a's stretch again, same direction, other lane
+    fleet.add(0)
+    fleet.feed(0, a_scans)
+    fleet.add(1)  # joins later: catches up on robot 0's keyframes
+    fleet.wait_for(lambda: fleet.nodes[1]._peers.counts['descriptors_stored'] >= 60,
+                   'catch-up of robot 0')
+    fleet.feed(1, b_scans)
+    good, bad = _check(fleet.loops[1], b_scans, {0: a_scans})
+    assert bad == 0 and good >= 40, (good, bad)
+    peers = fleet.nodes[1]._peers
+    assert peers.counts['clouds_received'] >= 1 and peers.counts['clouds_timed_out'] == 0
+    # Robot 0 stored robot 1's keyframes as they came and served the clouds.
+    assert fleet.nodes[0]._peers.counts['descriptors_stored'] == len(b_scans)
+    assert fleet.nodes[0]._peers.counts['clouds_served'] >= 1
+
+
+def test_bad_peers_are_counted_and_ignored(fleet: Fleet) -> None:
+    node = fleet.add(0, peer_timeout_sec=0.3)
+    fleet.feed(0, list(range(0, 5)))
+    pub = fleet.client.create_publisher(UInt8MultiArray, DESCRIPTOR_TOPIC, fleet.qos)
+    req = fleet.client.create_publisher(UInt8MultiArray, REQUEST_TOPIC, fleet.qos)
+    fleet.wait_for(lambda: pub.get_subscription_count() > 0, 'descriptor topic matched')
+    rng = np.random.default_rng(0)
+    good = DescriptorMessage(5, 0, 1, node.solid_config.fingerprint(),
+                             rng.random(40).astype(np.float32),
+                             rng.random(60).astype(np.float32))
+    other = DescriptorMessage(6, 0, 1, 'ffffffffffffffff', good.r_solid, good.heading)
+    for raw in (encode(good), encode(good), encode(other), b'garbage', encode(good)[:-1],
+                encode(CloudRequest(5, 0, 10**6, 1))):
+        msg = UInt8MultiArray()
+        msg.data = raw
+        (req if raw.startswith(b'SLQ1') else pub).publish(msg)
+    counts = node._peers.counts
+    fleet.wait_for(lambda: counts['malformed'] >= 2 and counts['descriptors_refused'] >= 1
+                   and counts['clouds_missing'] >= 1, 'peer counters')
+    assert counts['descriptors_stored'] == 1 and counts['descriptors_repeated'] == 1
+    size = node._detector.database.size
+    # A candidate against robot 5 (which never answers) times out and is dropped.
+    assert isinstance(node._peers.fetch(5, 0, 1), str)
+    assert counts['clouds_timed_out'] == 1
+    # The node keeps working.
+    fleet.feed(0, list(range(5, 10)))
+    assert node._detector.database.size == size + 5
