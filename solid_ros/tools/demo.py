@@ -23,7 +23,7 @@ from solid_ros.tools.replay import ReplayResult, load_config, replay, summary_li
 from solid_ros.tools.replay import main as replay_main
 from solid_ros.tools.runtime import tune_allocator
 
-__all__ = ['drive_options', 'main', 'revisit_table', 'shipped_config']
+__all__ = ['config_overrides', 'drive_options', 'main', 'revisit_table', 'shipped_config']
 
 PROG = 'solid_demo'
 SENSOR_PARAMS = {'hdl64': 'hdl64.yaml', 'avia_like': 'avia.yaml', 'ouster_like': 'hdl64.yaml',
@@ -89,6 +89,18 @@ def drive_options(args: argparse.Namespace) -> dict[str, Any]:
             'mount_roll_deg': args.tilt_roll_deg, 'mount_pitch_deg': args.tilt_pitch_deg}
 
 
+def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """Detector settings the command line changes in the parameter file: ``--fov``, and the
+    vertical FOV of a sensor that replays another sensor's shipped file."""
+    from solid_ros.sim.bagwriter import DEMO_SENSORS
+
+    out: dict[str, Any] = {} if args.fov is None else {'fov_width_deg': args.fov}
+    if args.params is None and args.sensor in OWN_VERTICAL_FOV:
+        model = DEMO_SENSORS[args.sensor]
+        out.update(fov_up_deg=model.fov_up_deg, fov_down_deg=model.fov_down_deg)
+    return out
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG, usage='%(prog)s [options]  |  %(prog)s BAG [solid_replay options]',
@@ -136,17 +148,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(args_in)
     tune_allocator()
     try:
-        from solid_ros.sim.bagwriter import DEMO_SENSORS, ensure_demo_bag
+        from solid_ros.sim.bagwriter import ensure_demo_bag
 
         if not args.quiet:
             print(f'{PROG}: preparing the simulated drive ({args.sensor}, seed {args.seed})...',
                   file=sys.stderr, flush=True)
         bag = ensure_demo_bag(args.cache_dir, **drive_options(args))
         params = args.params or shipped_config(SENSOR_PARAMS[args.sensor])
-        overrides: dict[str, Any] = {} if args.fov is None else {'fov_width_deg': args.fov}
-        if args.params is None and args.sensor in OWN_VERTICAL_FOV:
-            model = DEMO_SENSORS[args.sensor]
-            overrides.update(fov_up_deg=model.fov_up_deg, fov_down_deg=model.fov_down_deg)
+        overrides = config_overrides(args)
         config, node_config = load_config(params, 'solid_node', overrides)
         result = replay(bag, config, node_config=node_config, poses=bag.parent / 'poses.txt',
                         times=bag.parent / 'times.txt', radius=args.radius,

@@ -28,3 +28,17 @@ def test_demo_command_line_passes_the_options() -> None:
         with pytest.raises(SystemExit) as exc:
             demo._parser().parse_args(bad)
         assert exc.value.code == 2
+
+
+def test_demo_detector_settings_follow_the_sensor() -> None:
+    def overrides(argv: list[str]) -> dict[str, object]:
+        return demo.config_overrides(demo._parser().parse_args(argv))
+
+    assert overrides([]) == {} and overrides(['--fov', '90']) == {'fov_width_deg': 90.0}
+    # hdl64.yaml's +2 / -24.8 deg elevation bins would clip the other 360-degree sensors.
+    assert overrides(['--sensor', 'ouster_like']) == {'fov_up_deg': 22.5, 'fov_down_deg': -22.5}
+    assert overrides(['--sensor', 'vlp16_like', '--fov', '120']) == {
+        'fov_width_deg': 120.0, 'fov_up_deg': 15.0, 'fov_down_deg': -15.0}
+    assert overrides(['--sensor', 'vlp16_like', '--params', 'mine.yaml']) == {}
+    assert overrides(['--sensor', 'avia_like']) == {}
+    assert demo.SENSOR_PARAMS['ouster_like'] == demo.SENSOR_PARAMS['hdl64']
