@@ -269,7 +269,9 @@ def cast_scan(scene: Scene, model: LidarModel, x: float, y: float, yaw: float,
     else:
         phi, alpha = _level_grid(model)
         level, intensity = _cast_level(scene, model, phi, alpha, x, y, yaw, rng)
-        xyz = level @ model.mount_rotation()  # rows: R^T p
+        rot = model.mount_rotation()
+        # Rows p^T R = (R^T p)^T, written out: a (N, 3) @ (3, 3) matmul is 10x slower.
+        xyz = level[:, 0:1] * rot[0] + level[:, 1:2] * rot[1] + level[:, 2:3] * rot[2]
         keep = _in_fov(model, xyz)
         xyz, intensity = xyz[keep], intensity[keep]
     out = np.empty((len(xyz), 4), dtype=np.float32)
@@ -280,8 +282,11 @@ def cast_scan(scene: Scene, model: LidarModel, x: float, y: float, yaw: float,
 
 def _in_fov(model: LidarModel, xyz: FloatArray) -> npt.NDArray[np.bool_]:
     """Whether sensor-frame points lie inside the model's field of view (boundary kept)."""
-    el = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
-    keep: npt.NDArray[np.bool_] = (el >= model.fov_down_deg) & (el <= model.fov_up_deg)
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    # Elevation bounds as z against r tan(bound): no arctan per point.
+    keep: npt.NDArray[np.bool_] = (
+        (xyz[:, 2] >= r * math.tan(math.radians(model.fov_down_deg)))
+        & (xyz[:, 2] <= r * math.tan(math.radians(model.fov_up_deg))))
     if model.fov_width_deg < 360.0:
         az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])) - model.fov_center_deg
         keep &= np.abs((az + 180.0) % 360.0 - 180.0) <= 0.5 * model.fov_width_deg
