@@ -271,13 +271,13 @@ class SolidConfig(_Schema):
     verify_min_constraint: float = _p(0.0075, 'Least horizontal constraint (information on x, '
                                       'y, yaw per structure point; 0 in a corridor)', low=0.0,
                                       high=1.0)
-    verify_max_conflict: float = _p(0.06, 'Largest fraction of points lying in space the other '
+    verify_max_conflict: float = _p(0.03, 'Largest fraction of points lying in space the other '
                                     'scan saw through (free-space conflict)', low=0.0, high=1.0)
     verify_min_spread: float = _p(0.002, 'Constraint left without the strongest object; below '
                                   'this the pose rests on one object and must pass the '
                                   'single-object bar', low=0.0, high=1.0)
-    verify_single_object_overlap: float = _p(0.5, 'Single-object bar: least structure overlap '
-                                             '(and at most a third of verify_max_conflict)',
+    verify_single_object_overlap: float = _p(0.45, 'Single-object bar: least structure overlap '
+                                             '(and at most half of verify_max_conflict)',
                                              low=0.0, high=1.0)
     verify_max_drift: float = _p(0.2, 'Consistency: restarts one voxel off must return within '
                                  'this, metres', low=0.0, high=100.0)

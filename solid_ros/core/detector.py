@@ -100,6 +100,9 @@ class LoopCandidate:
         reason: ``'verified'``, ``'descriptor'`` (accepted without verification) or the
             verification test that rejected it.
         overlap: structure overlap of the alignment (NaN when no fine registration ran).
+        conflict: free-space conflict of the alignment (NaN: not measured).
+        constraint: horizontal constraint per structure point (NaN: not measured).
+        spread: the constraint without the strongest object (NaN: not measured).
     """
 
     query_index: int
@@ -117,6 +120,9 @@ class LoopCandidate:
     covariance: tuple[float, ...] = _NAN_COV
     reason: str = 'descriptor'
     overlap: float = math.nan
+    conflict: float = math.nan
+    constraint: float = math.nan
+    spread: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """Return the fields as a plain dict."""
@@ -429,7 +435,8 @@ class LoopDetector:
             proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns, m.session,
             m.distance, result.yaw if result.verified else yaw, hit.margin,
             verified=result.verified, pose=self._unlevel_pose(result.T), fitness=result.fitness,
-            rmse=result.rmse, covariance=cov, reason=result.reason, overlap=result.overlap)
+            rmse=result.rmse, covariance=cov, reason=result.reason, overlap=result.overlap,
+            conflict=result.conflict, constraint=result.constraint, spread=result.spread)
 
     def _accept_by_descriptor(self, proposal: Proposal, gap_blocked: bool) -> list[LoopCandidate]:
         mode = self._config.heading_match

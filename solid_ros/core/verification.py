@@ -28,7 +28,7 @@ rejection ``reason``):
    (structure clustered in a top-view grid of the coarse voxel), the constraint falls below
    ``verify_min_spread``. One generic object (a building corner, a wall end) matches any other
    like it, so such a loop must also clear a stricter bar: structure overlap at least
-   ``verify_single_object_overlap`` and conflict at most a third of ``verify_max_conflict``.
+   ``verify_single_object_overlap`` and conflict at most half of ``verify_max_conflict``.
 10. ``unstable``: consistency check. The fine stage is restarted from the solution moved one
    fine voxel along the least constrained horizontal direction and turned 2 degrees, both
    ways (within the fine stage's reach of two voxels); a
@@ -233,7 +233,7 @@ class Verifier:
             return _rejected('constraint', T_qm, **scores)
         if not (sup.spread >= cfg.verify_min_spread
                 or (sup.overlap >= cfg.verify_single_object_overlap
-                    and sup.conflict <= cfg.verify_max_conflict / 3.0)):
+                    and sup.conflict <= cfg.verify_max_conflict / 2.0)):
             return _rejected('single_object', T_qm, **scores)
         drift_m, drift_deg = self._drift(query, src, T_qm, sup.information)
         scores.update(drift_m=drift_m, drift_deg=drift_deg)

@@ -51,32 +51,35 @@ def revisit_table(result: ReplayResult, labels_path: Path,
                   radius: float) -> list[tuple[str, int, int, float]]:
     """Per revisit kind: (kind, revisits, found, mean yaw error in degrees of the found).
 
-    A revisit counts as found when the detector's top-1 match, accepted or not, is within
-    ``radius`` metres of the query's reference position; accepted loops are in the summary.
+    A revisit counts as found when a loop was published for it whose relative pose is
+    correct (within the replay's pose limits of the reference); the yaw error is that loop's.
+    ``radius`` is kept for the caller's header.
     """
     rows = [line.split() for line in labels_path.read_text().splitlines() if line.strip()]
     kinds = {int(r[0]): r[1] for r in rows}
-    if result.reference is None:
+    loops = result.report.get('loops')
+    if result.reference is None or loops is None:
         return []
-    pos = result.reference[:, :3, 3]
+    limits = (loops['max_error_m'], loops['max_error_deg'])
+    published = {(c.query_index, c.match_index, c.match_session): c for c in result.candidates}
     rot = result.reference[:, :3, :3]
-    seen: dict[str, list[int]] = {}
-    errors: dict[str, list[float]] = {}
-    for q, best in enumerate(result.best):
+    seen: dict[str, int] = {}
+    errors: dict[str, dict[int, float]] = {}
+    for q in range(len(result.reference)):
         kind = kinds.get(q, 'new')
-        if kind == 'new':
+        if kind != 'new':
+            seen[kind] = seen.get(kind, 0) + 1
+    for rec in result.records:
+        kind = kinds.get(rec.query, 'new')
+        if kind == 'new' or not rec.published or not rec.correct(*limits):
             continue
-        seen.setdefault(kind, []).append(q)
-        if best is None or best.match_session != result.config.session_id:
-            continue
-        j = best.match_index
-        if float(np.linalg.norm(pos[q] - pos[j])) <= radius:
-            truth = float(relative_yaws(rot, [q], [j])[0])
-            errors.setdefault(kind, []).append(
-                abs(math.degrees(math.remainder(best.yaw - truth, 2 * math.pi))))
-    return [(k, len(v), len(errors.get(k, [])),
-             float(np.mean(errors[k])) if errors.get(k) else math.nan)
-            for k, v in sorted(seen.items())]
+        c = published[(rec.query, rec.match, rec.session)]
+        truth = float(relative_yaws(rot, [rec.query], [rec.match])[0])
+        errors.setdefault(kind, {}).setdefault(
+            rec.query, abs(math.degrees(math.remainder(c.yaw - truth, 2 * math.pi))))
+    return [(k, n, len(errors.get(k, {})),
+             float(np.mean(list(errors[k].values()))) if errors.get(k) else math.nan)
+            for k, n in sorted(seen.items())]
 
 
 def drive_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -168,8 +171,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(line)
     table = revisit_table(result, bag.parent / 'labels.txt', args.radius)
     if table:
-        print('  revisits by kind  (found = best match within '
-              f'{args.radius:g} m, accepted or not)')
+        loops = result.report['loops']
+        print('  revisits by kind  (found = a published loop with its pose within '
+              f'{loops["max_error_m"]:g} m / {loops["max_error_deg"]:g} deg)')
         for kind, total, found, yaw_err in table:
             yaw = 'n/a' if math.isnan(yaw_err) else f'{yaw_err:.2f} deg'
             print(f'    {kind:<8} {found:4d} of {total:4d} found ({found / total:.2f}), '

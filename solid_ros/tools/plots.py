@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -9,10 +10,12 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.tools.evaluation import Evaluation
+from solid_ros.tools.loops import LoopRecord
 
 __all__ = ['PLOT_FILES', 'write_plots']
 
-PLOT_FILES = ('pr_curve.png', 'trajectory.png', 'distance_hist.png', 'yaw_error_hist.png')
+PLOT_FILES = ('pr_curve.png', 'trajectory.png', 'distance_hist.png', 'yaw_error_hist.png',
+              'verification.png')
 _TRUE, _FALSE, _GREY = '#1b9e4b', '#d7301f', '#9a9a9a'
 
 
@@ -56,28 +59,75 @@ def _pr(plt: Any, ev: Evaluation, threshold: float, path: Path) -> None:
 
 
 def _trajectory(plt: Any, ev: Evaluation, pos: npt.NDArray[np.float64],
-                match: npt.NDArray[np.intp], path: Path) -> None:
+                match: npt.NDArray[np.intp], records: Sequence[LoopRecord] | None,
+                max_error: tuple[float, float], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6.5, 6), dpi=110)
     ax.plot(pos[:, 0], pos[:, 1], '-', color=_GREY, lw=1, label='trajectory')
     pos_q = np.flatnonzero(ev.truth.has_loop)
     ax.plot(pos[pos_q, 0], pos[pos_q, 1], '.', color='#74a9cf', ms=4,
             label=f'queries with a true loop ({len(pos_q)})')
-    acc = np.flatnonzero(ev.accepted & (match >= 0))
+    if records is None:  # edges of the accepted best matches
+        edges = [(int(q), int(match[q]), bool(ev.correct[q]))
+                 for q in np.flatnonzero(ev.accepted & (match >= 0))]
+        rejected: list[tuple[int, int]] = []
+    else:
+        inside = [r for r in records if r.session >= 0 and 0 <= r.match < len(pos)
+                  and np.isfinite(r.trans_err_m)]
+        edges = [(r.query, r.match, r.correct(*max_error)) for r in inside if r.published]
+        rejected = [(r.query, r.match) for r in inside if not r.published]
+    for q, m in rejected:
+        ax.plot([pos[q, 0], pos[m, 0]], [pos[q, 1], pos[m, 1]], '-', color=_GREY, lw=0.5,
+                alpha=0.25)
     counts = {True: 0, False: 0}
-    for q in acc:
-        ok = bool(ev.correct[q])
+    for q, m, ok in edges:
         counts[ok] += 1
-        a, b = pos[q], pos[match[q]]
-        ax.plot([a[0], b[0]], [a[1], b[1]], '-', color=_TRUE if ok else _FALSE,
-                lw=1.6 if ok else 1.2, alpha=0.85)
-    ax.plot([], [], '-', color=_TRUE, label=f'accepted loop, true ({counts[True]})')
-    ax.plot([], [], '-', color=_FALSE, label=f'accepted loop, false ({counts[False]})')
+        ax.plot([pos[q, 0], pos[m, 0]], [pos[q, 1], pos[m, 1]], '-',
+                color=_TRUE if ok else _FALSE, lw=1.6 if ok else 1.2, alpha=0.85)
+    what = 'published loop' if records is not None else 'accepted loop'
+    if rejected:
+        ax.plot([], [], '-', color=_GREY, alpha=0.5, label=f'rejected candidate ({len(rejected)})')
+    ax.plot([], [], '-', color=_TRUE, label=f'{what}, correct ({counts[True]})')
+    ax.plot([], [], '-', color=_FALSE, label=f'{what}, false ({counts[False]})')
     if len(pos):
         ax.plot(pos[0, 0], pos[0, 1], 'k^', ms=7, label='start')
-    ax.set(xlabel='x (m)', ylabel='y (m)', title='Trajectory and accepted loop edges')
+    ax.set(xlabel='x (m)', ylabel='y (m)', title='Trajectory and loop edges')
     ax.set_aspect('equal', adjustable='datalim')
     ax.grid(alpha=0.3)
     ax.legend(loc='best', fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _verification(plt: Any, records: Sequence[LoopRecord] | None,
+                  max_error: tuple[float, float], path: Path) -> None:
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.5), dpi=110)
+    recs = list(records or [])
+    ov_v = np.array([r.overlap for r in recs if r.verified and np.isfinite(r.overlap)])
+    ov_r = np.array([r.overlap for r in recs if not r.verified and np.isfinite(r.overlap)])
+    bins = np.linspace(0.0, 1.0, 41)
+    a1.hist(ov_v, bins=bins, color=_TRUE, alpha=0.7, label=f'verified ({ov_v.size})')
+    a1.hist(ov_r, bins=bins, color=_FALSE, alpha=0.5,
+            label=f'rejected after registration ({ov_r.size})')
+    a1.set(xlabel='structure overlap', ylabel='candidates',
+           title='Verified vs rejected candidates')
+    a1.legend(fontsize=8)
+    a1.grid(alpha=0.3)
+    pub = [r for r in recs if r.published and np.isfinite(r.trans_err_m)]
+    te = np.array([r.trans_err_m for r in pub])
+    re_ = np.array([r.rot_err_deg for r in pub])
+    if te.size:
+        ok = te < max_error[0]
+        a2.scatter(te[ok], re_[ok], s=12, color=_TRUE, label=f'correct ({int(ok.sum())})')
+        a2.scatter(te[~ok], re_[~ok], s=12, color=_FALSE, label=f'false ({int((~ok).sum())})')
+        a2.axvline(max_error[0], color='black', ls='--', lw=1)
+        a2.axhline(max_error[1], color='black', ls='--', lw=1)
+        a2.legend(fontsize=8)
+    else:
+        a2.text(0.5, 0.5, 'no published loop', ha='center', va='center', transform=a2.transAxes)
+    a2.set(xlabel='translation error (m)', ylabel='rotation error (deg)',
+           title='Published loops against the reference pose')
+    a2.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -127,8 +177,10 @@ def _yaw(plt: Any, ev: Evaluation, path: Path) -> None:
 
 
 def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
-                match: npt.ArrayLike, threshold: float) -> list[Path]:
-    """Write the four evaluation plots and return their paths.
+                match: npt.ArrayLike, threshold: float,
+                records: Sequence[LoopRecord] | None = None,
+                max_error: tuple[float, float] = (1.0, 3.0)) -> list[Path]:
+    """Write the evaluation plots and return their paths.
 
     Args:
         out_dir: existing directory.
@@ -136,6 +188,9 @@ def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
         positions: (K, 3) reference positions per keyframe.
         match: (K,) best match per keyframe (this session), -1 when none.
         threshold: the configured distance_threshold (marked on the plots).
+        records: scored candidates (published loops, rejected ones); None draws the
+            accepted best matches instead.
+        max_error: translation (m) and rotation (deg) limits of a correct loop.
     """
     plt = _pyplot()
     out = Path(out_dir)
@@ -143,7 +198,8 @@ def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
     m = np.asarray(match, dtype=np.intp)
     paths = [out / name for name in PLOT_FILES]
     _pr(plt, ev, threshold, paths[0])
-    _trajectory(plt, ev, pos, m, paths[1])
+    _trajectory(plt, ev, pos, m, records, max_error, paths[1])
     _distances(plt, ev, threshold, paths[2])
     _yaw(plt, ev, paths[3])
+    _verification(plt, records, max_error, paths[4])
     return paths

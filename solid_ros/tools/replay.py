@@ -33,7 +33,8 @@ from solid_ros.core.errors import ConfigError, SolidError
 from solid_ros.core.persistence import check_save_target
 from solid_ros.formats.bags import Bag, select_cloud_topic, select_odom_topic
 from solid_ros.formats.poses import PoseError, PoseTrack, associate, load_reference
-from solid_ros.tools.evaluation import Evaluation, evaluate, sweep_table
+from solid_ros.tools.evaluation import Evaluation, evaluate, recommend_threshold, sweep_table
+from solid_ros.tools.loops import LoopRecord, overlap_sweep, pose_error, score_loops
 from solid_ros.tools.progress import Progress
 from solid_ros.tools.runtime import tune_allocator
 
@@ -42,7 +43,10 @@ __all__ = ['ReplayResult', 'build_parser', 'main', 'replay']
 PROG = 'solid_replay'
 CSV_COLUMNS = ('query_index', 'match_index', 'query_stamp_ns', 'match_stamp_ns',
                'match_session', 'distance', 'yaw', 'margin', 'accepted', 'best',
-               'true_match', 'gt_distance_m', 'yaw_gt')
+               'true_match', 'gt_distance_m', 'yaw_gt', 'verified', 'reason', 'tx', 'ty', 'tz',
+               'qx', 'qy', 'qz', 'qw', 'fitness', 'rmse', 'overlap', 'conflict', 'constraint',
+               'spread', 'trans_err_m',
+               'rot_err_deg', 'pose_correct') + tuple(f'cov_{i}' for i in range(36))
 
 
 @dataclass
@@ -57,6 +61,8 @@ class ReplayResult:
         stamps_ns: per keyframe, its stamp.
         reference: per keyframe, the reference pose (NaN where unknown), or None.
         evaluation: metrics object when reference poses were available.
+        attempts: per keyframe, every candidate it looked at (published or not).
+        records: the attempts scored against the reference poses (empty without them).
         report: the JSON report (also written to ``out_dir/report.json``).
         files: files written.
     """
@@ -75,6 +81,8 @@ class ReplayResult:
     evaluation: Evaluation | None
     report: dict[str, Any]
     wall_sec: float
+    attempts: list[list[LoopCandidate]] = field(default_factory=list)
+    records: list[LoopRecord] = field(default_factory=list)
     files: list[Path] = field(default_factory=list)
 
     @property
@@ -138,7 +146,8 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
            out_dir: str | Path | None = None, load_db: str | Path | None = None,
            save_db: str | Path | None = None, progress: str = 'auto',
            plots: bool = True, params_file: str | Path | None = None,
-           stream: TextIO | None = None) -> ReplayResult:
+           stream: TextIO | None = None, max_pose_error_m: float = 1.0,
+           max_pose_error_deg: float = 3.0, target_precision: float = 1.0) -> ReplayResult:
     """Replay a bag through the node's detector and evaluate it when poses are known.
 
     Args:
@@ -161,6 +170,9 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
         plots: write PNG plots to ``out_dir`` when poses are available.
         params_file: recorded in the report.
         stream: progress stream (default stderr).
+        max_pose_error_m: a published loop is correct within this translation error.
+        max_pose_error_deg: ... and this rotation error of the reference relative pose.
+        target_precision: the sweep recommends the setting reaching this precision.
 
     Raises:
         SolidError: any problem with the inputs (BagError, ConfigError, DatabaseError,
@@ -202,6 +214,8 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
         skipped: list[tuple[int, str]] = []
         read_ms: list[float] = []
         detect_ms: list[float] = []
+        stage_ms: dict[str, list[float]] = {'describe': [], 'search': [], 'verify': []}
+        attempts: list[list[LoopCandidate]] = []
         messages = 0
         clouds = b.clouds(cloud_topic)
         try:
@@ -234,6 +248,9 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
                 if detector.last_was_keyframe:
                     kf_stamps.append(scan.stamp_ns)
                     kf_seq.append(scan.seq)
+                    attempts.append(list(detector.last_attempts))
+                    for stage in stage_ms:
+                        stage_ms[stage].append(getattr(detector.times, stage))
                     top = detector.last_best
                     best.append(top)
                     accepted.append(top is not None and any(
@@ -269,7 +286,11 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
     ev = None
     if reference is not None:
         ev = _evaluate(cfg, best, acc, kf_stamp_arr, reference, radius, max_heading_deg)
+    records: list[LoopRecord] = []
+    if reference is not None:
+        records = _records(cfg, attempts, candidates, reference)
     db = detector.database
+    kf_clouds = detector.clouds
     report: dict[str, Any] = {
         'tool': PROG,
         'versions': _versions(),
@@ -290,7 +311,15 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
         'timings': {'wall_sec': wall,
                     'scans_per_sec': len(stamps) / wall if wall > 0 else None,
                     'read_decode_ms': _percentiles(read_ms),
-                    'detect_ms': _percentiles(detect_ms)},
+                    'detect_ms': _percentiles(detect_ms),
+                    **{f'{k}_ms': _percentiles([v for v in ms if math.isfinite(v)])
+                       for k, ms in stage_ms.items()}},
+        'keyframe_clouds': {'kept': len(kf_clouds), 'mb': kf_clouds.nbytes / 1e6,
+                            'dropped': kf_clouds.dropped,
+                            'bytes_per_keyframe': kf_clouds.nbytes / max(len(kf_clouds), 1)},
+        'verification': {'enabled': cfg.verify, 'reasons': dict(sorted(detector.reasons.items()))},
+        'loops': None,
+        'loop_sweep': None,
         'database': {'size': db.size, 'bytes': db.stored_bytes,
                      'allocated_bytes': db.nbytes, 'bytes_per_scan': db.bytes_per_scan,
                      'peak_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0},
@@ -302,8 +331,16 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
     if ev is not None:
         report['metrics'] = ev.metrics()
         report['threshold_sweep'] = sweep_table(ev)
+        report['loops'] = score_loops(records, ev.truth.has_loop, max_error_m=max_pose_error_m,
+                                      max_error_deg=max_pose_error_deg)
+        report['loop_sweep'] = (
+            overlap_sweep(records, ev.truth.has_loop, cfg.verify_min_overlap,
+                          target_precision=target_precision, max_error_m=max_pose_error_m,
+                          max_error_deg=max_pose_error_deg) if cfg.verify
+            else _distance_for_precision(ev, target_precision))
     result = ReplayResult(Path(bag), cloud_topic, cfg, messages, len(skipped), len(kf_stamps),
-                          candidates, best, acc, kf_stamp_arr, reference, ev, report, wall)
+                          candidates, best, acc, kf_stamp_arr, reference, ev, report, wall,
+                          attempts, records)
     if out_dir is not None:
         result.files = _write_outputs(Path(out_dir), result, plots)
     return result
@@ -314,6 +351,36 @@ def _nearest(track: PoseTrack, stamp: int, tol: int, cache: dict[int, int]) -> i
         assert track.stamps_ns is not None
         cache[stamp] = int(associate([stamp], track.stamps_ns, tol)[0])
     return cache[stamp]
+
+
+def _records(cfg: SolidConfig, attempts: list[list[LoopCandidate]],
+             published: list[LoopCandidate],
+             reference: npt.NDArray[np.float64]) -> list[LoopRecord]:
+    """Every attempt scored against the reference relative pose."""
+    shown = {id(c) for c in published}
+    out = []
+    for tried in attempts:
+        for c in tried:
+            te = re_ = gd = math.nan
+            if c.match_session == cfg.session_id and 0 <= c.match_index < len(reference):
+                q, m = reference[c.query_index], reference[c.match_index]
+                te, re_ = pose_error(c.matrix(), np.linalg.solve(m, q))
+                gd = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+            out.append(LoopRecord(c.query_index, c.match_index, c.match_session,
+                                  id(c) in shown, c.verified, c.reason, c.overlap, c.distance,
+                                  te, re_, gd))
+    return out
+
+
+def _distance_for_precision(ev: Evaluation, target: float) -> dict[str, Any]:
+    """Descriptor-only mode: the largest distance_threshold whose precision reaches ``target``
+    (places within the radius count as correct, as in the PR curve)."""
+    c = ev.curve
+    ok = np.flatnonzero(c.precision >= target)
+    k = int(ok[-1]) if ok.size else -1
+    return {'parameter': 'distance_threshold', 'target_precision': target,
+            'recommended': recommend_threshold(c, k) if k >= 0 else None,
+            'recall': float(c.recall[k]) if k >= 0 else None}
 
 
 def _evaluate(cfg: SolidConfig, best: list[LoopCandidate | None], acc: npt.NDArray[np.bool_],
@@ -349,8 +416,10 @@ def _write_outputs(out: Path, r: ReplayResult, plots: bool) -> list[Path]:
         if plots and r.evaluation is not None and r.reference is not None:
             from solid_ros.tools.plots import write_plots
 
+            loops = r.report['loops']
             files += write_plots(out, r.evaluation, r.reference[:, :3, 3], _match_rows(r),
-                                 threshold=r.config.distance_threshold)
+                                 threshold=r.config.distance_threshold, records=r.records,
+                                 max_error=(loops['max_error_m'], loops['max_error_deg']))
         r.report['files'] = [str(f) for f in files]
         files[1].write_text(json.dumps(_jsonable(r.report), indent=2) + '\n', encoding='utf-8')
     except OSError as err:
@@ -380,36 +449,58 @@ def _jsonable(obj: Any) -> Any:
 
 
 def _write_csv(path: Path, r: ReplayResult) -> None:
-    ev = r.evaluation
-    ref = r.reference
+    """One row per candidate a keyframe looked at, plus its best descriptor match when that
+    was not looked at (see the README for the columns)."""
+    ev, ref = r.evaluation, r.reference
+    published = {id(c) for c in r.candidates}
+    scored = iter(r.records)
     with path.open('w', newline='', encoding='utf-8') as fh:
         w = csv.writer(fh)
         w.writerow(CSV_COLUMNS)
-        by_query: dict[int, list[LoopCandidate]] = {}
-        for c in r.candidates:
-            by_query.setdefault(c.query_index, []).append(c)
         for i, b in enumerate(r.best):
-            if b is None:
-                continue
-            rows = [(b, bool(r.accepted[i]), True)]
-            rows += [(c, True, False) for c in by_query.get(b.query_index, [])
-                     if (c.match_index, c.match_session) != (b.match_index, b.match_session)]
-            for c, acc, is_best in rows:
-                true, gtd, gty = '', '', ''
-                if ev is not None and ref is not None and c.match_session == r.config.session_id \
-                        and 0 <= c.match_index < len(ref):
-                    q, m = ref[c.query_index], ref[c.match_index]
-                    d = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
-                    if math.isfinite(d):
-                        rel = m[:3, :3].T @ q[:3, :3]
-                        yaw_gt = math.atan2(rel[1, 0], rel[0, 0])
-                        ok = d <= ev.radius and (ev.max_heading_deg is None or abs(
-                            math.degrees(yaw_gt)) <= ev.max_heading_deg)
-                        true, gtd, gty = str(int(ok)), f'{d:.3f}', f'{yaw_gt:.6f}'
-                w.writerow([c.query_index, c.match_index, c.query_stamp_ns, c.match_stamp_ns,
-                            c.match_session, f'{c.distance:.6f}', f'{c.yaw:.6f}',
-                            f'{c.margin:.6f}' if math.isfinite(c.margin) else 'inf',
-                            int(acc), int(is_best), true, gtd, gty])
+            tried = r.attempts[i] if i < len(r.attempts) else []
+            rows: list[tuple[LoopCandidate, bool, LoopRecord | None]] = []
+            for c in tried:
+                rows.append((c, id(c) in published, next(scored) if r.records else None))
+            if b is not None and not any((c.match_index, c.match_session)
+                                         == (b.match_index, b.match_session) for c in tried):
+                rows.insert(0, (b, False, None))
+            for c, acc, rec in rows:
+                is_best = b is not None and (c.match_index, c.match_session) == (
+                    b.match_index, b.match_session)
+                w.writerow(_csv_row(r, c, acc, is_best, rec, ev, ref))
+
+
+def _csv_row(r: ReplayResult, c: LoopCandidate, acc: bool, is_best: bool,
+             rec: LoopRecord | None, ev: Evaluation | None,
+             ref: npt.NDArray[np.float64] | None) -> list[Any]:
+    true, gtd, gty = '', '', ''
+    if ev is not None and ref is not None and c.match_session == r.config.session_id \
+            and 0 <= c.match_index < len(ref):
+        q, m = ref[c.query_index], ref[c.match_index]
+        d = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+        if math.isfinite(d):
+            rel = m[:3, :3].T @ q[:3, :3]
+            yaw_gt = math.atan2(rel[1, 0], rel[0, 0])
+            ok = d <= ev.radius and (ev.max_heading_deg is None or abs(
+                math.degrees(yaw_gt)) <= ev.max_heading_deg)
+            true, gtd, gty = str(int(ok)), f'{d:.3f}', f'{yaw_gt:.6f}'
+    te = re_ = correct = ''
+    if rec is not None and math.isfinite(rec.trans_err_m):
+        te, re_ = f'{rec.trans_err_m:.4f}', f'{rec.rot_err_deg:.4f}'
+        correct = str(int(rec.trans_err_m < r.report['loops']['max_error_m']
+                          and rec.rot_err_deg < r.report['loops']['max_error_deg']))
+
+    def num(v: float) -> str:
+        return f'{v:.6g}' if math.isfinite(v) else ('inf' if v > 0 else '')
+
+    return [c.query_index, c.match_index, c.query_stamp_ns, c.match_stamp_ns, c.match_session,
+            f'{c.distance:.6f}', f'{c.yaw:.6f}',
+            f'{c.margin:.6f}' if math.isfinite(c.margin) else 'inf', int(acc), int(is_best),
+            true, gtd, gty, int(c.verified), c.reason, *(f'{v:.6f}' for v in c.pose),
+            num(c.fitness), num(c.rmse), num(c.overlap), num(c.conflict), num(c.constraint),
+            num(c.spread), te, re_, correct,
+            *(num(v) for v in c.covariance)]
 
 
 # ------------------------------------------------------------------------------ command line
@@ -431,6 +522,13 @@ def _heading(text: str) -> float:
     value = float(text)
     if not 0.0 < value <= 180.0:
         raise argparse.ArgumentTypeError(f'must be in (0, 180] degrees, got {text!r}')
+    return value
+
+
+def _fraction(text: str) -> float:
+    value = float(text)
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f'must be in (0, 1], got {text!r}')
     return value
 
 
@@ -470,6 +568,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help='stamps in seconds, one per line, for a KITTI --poses file')
     p.add_argument('--radius', type=_radius, default=5.0, metavar='M',
                    help='true-loop distance in metres (default: %(default)s)')
+    p.add_argument('--max-pose-error-m', type=_radius, default=1.0, metavar='M',
+                   help='a published loop is correct when its relative pose is within this '
+                        'translation of the reference one (default: %(default)s)')
+    p.add_argument('--max-pose-error-deg', type=_heading, default=3.0, metavar='DEG',
+                   help='... and within this rotation (default: %(default)s)')
+    p.add_argument('--target-precision', type=_fraction, default=1.0, metavar='P',
+                   help='the sweep recommends the setting that reaches this precision of '
+                        'published loops (default: %(default)s = no false loop)')
     p.add_argument('--max-heading-deg', type=_heading, metavar='DEG',
                    help='also require a heading difference below this for a true loop')
     p.add_argument('--out', metavar='DIR',
@@ -513,60 +619,70 @@ def summary_lines(r: ReplayResult) -> list[str]:
     """The human summary printed at the end of a run."""
     rep = r.report
     t = rep['timings']
-    det = t['detect_ms']
+    cfg = r.config
+    stages = '  '.join(f'{k} {_fmt(t[f"{k}_ms"]["p50"], ".2f")}'
+                       for k in ('describe', 'search', 'verify'))
+    clouds = rep['keyframe_clouds']
     lines = [
         f'{PROG} summary',
         f'  bag               {r.bag} ({rep["format"]}, {r.topic})',
         f'  integrity         {rep["integrity"]}',
         f'  scans             {r.messages} read, {r.skipped} skipped, {r.keyframes} keyframes',
-        f'  loops accepted    {len(r.candidates)} (distance_threshold '
-        f'{r.config.distance_threshold})',
+        f'  loops published   {len(r.candidates)} ('
+        + (f'verified by registration; {_reasons(rep["verification"]["reasons"])})'
+           if cfg.verify else f'descriptor only, distance_threshold {cfg.distance_threshold})'),
         f'  throughput        {_fmt(t["scans_per_sec"], ".1f")} scans/s end to end '
         f'({t["wall_sec"]:.2f} s)',
-        f'  detect ms         p50 {_fmt(det["p50"], ".2f")}  p90 {_fmt(det["p90"], ".2f")}  '
-        f'p99 {_fmt(det["p99"], ".2f")}  max {_fmt(det["max"], ".2f")}',
+        f'  stage ms p50      {stages}',
         f'  database          {rep["database"]["size"]} scans, '
         f'{rep["database"]["bytes"] / 1e6:.2f} MB ({rep["database"]["bytes_per_scan"]} bytes '
-        'per scan)',
+        f'per scan); keyframe clouds {clouds["kept"]}, {clouds["mb"]:.2f} MB, '
+        f'{clouds["dropped"]} dropped',
     ]
     m = rep['metrics']
     if m is None:
         lines.append('  evaluation        none (no reference poses: give --poses or an '
                      'Odometry topic)')
         return lines
-    ye = m['yaw_error_deg']
-    acc = m['accepted']
+    loops = rep['loops']
+    te, re_ = loops['trans_err_m'], loops['rot_err_deg']
     lines += [
         f'  reference         {rep["reference"]} (radius {m["radius_m"]} m; '
         f'{m["queries_with_true_loop"]} of {m["queries"]} queries have a true loop)',
-        f'  Recall@1          {_fmt(m["recall_at_1"])}',
-        f'  F1max             {_fmt(m["f1_max"])} at distance {_fmt(m["f1_max_threshold"], ".4f")}'
-        f' (P {_fmt(m["f1_max_precision"])}, R {_fmt(m["f1_max_recall"])})',
-        f'  zero-FP           recall {_fmt(m["zero_fp_recall"])} up to distance '
-        f'{_fmt(m["zero_fp_threshold"], ".4f")}',
-        f'  ROC AUC           {_fmt(m["roc_auc"])}',
-        f'  accepted loops    {acc["true"]} true, {acc["false"]} false '
-        f'(precision {_fmt(acc["precision"])}, recall {_fmt(acc["recall"])})',
-        f'  yaw error deg     mean {_fmt(ye["mean"], ".2f")}  median {_fmt(ye["median"], ".2f")}'
-        f'  p95 {_fmt(ye["p95"], ".2f")}  max {_fmt(ye["max"], ".2f")}  (n={ye["count"]})',
+        f'  published loops   {loops["correct"]} correct, {loops["false"]} false (pose within '
+        f'{loops["max_error_m"]} m / {loops["max_error_deg"]} deg): precision '
+        f'{_fmt(loops["precision"])}, recall {_fmt(loops["recall"])}',
+        f'  pose error        median {_fmt(te["median"], ".3f")} m, {_fmt(re_["median"], ".2f")}'
+        f' deg; p95 {_fmt(te["p95"], ".3f")} m, {_fmt(re_["p95"], ".2f")} deg '
+        f'(n={te["count"]})',
+        f'  descriptor        Recall@1 {_fmt(m["recall_at_1"])}, F1max {_fmt(m["f1_max"])}, '
+        f'ROC AUC {_fmt(m["roc_auc"])}',
     ]
-    sweep = rep['threshold_sweep'] or []
-    if sweep:
-        lines.append('  threshold sweep   threshold  precision  recall  f1     tp   fp')
-        for row in sweep:
-            lines.append(f'                    {row["threshold"]:<9}  {row["precision"]:.3f}'
-                         f'      {row["recall"]:.3f}   {row["f1"]:.3f}  {row["tp"]:<4} '
-                         f'{row["fp"]}')
-    if m['recommended_distance_threshold'] is not None:
-        lines.append('  paste into YAML:')
-        lines.append(f'    distance_threshold: {m["recommended_distance_threshold"]}'
-                     f'   # F1max {m["f1_max"]:.3f} on this data')
-    if m['recommended_zero_fp_threshold'] is not None:
-        lines.append(f'    distance_threshold: {m["recommended_zero_fp_threshold"]}'
-                     f'   # no false positive on this data (recall {m["zero_fp_recall"]:.3f})')
+    sweep = rep['loop_sweep']
+    if sweep is not None:
+        rows = sweep.get('rows', [])
+        if rows:
+            lines.append(f'  {sweep["parameter"]} sweep   threshold  precision  recall  tp   fp')
+            step = max(1, len(rows) // 10)
+            for row in rows[::step]:
+                lines.append(f'                    {row["threshold"]:<9}  '
+                             f'{row["precision"]:.3f}      {row["recall"]:.3f}   '
+                             f'{row["tp"]:<4} {row["fp"]}')
+        target = sweep['target_precision']
+        if sweep['recommended'] is not None:
+            lines.append('  paste into YAML:')
+            lines.append(f'    {sweep["parameter"]}: {sweep["recommended"]}   # precision >= '
+                         f'{target} on this data')
+        else:
+            lines.append(f'  no {sweep["parameter"]} reaches precision {target} on this data')
     if r.files:
         lines.append(f'  outputs           {", ".join(str(f) for f in r.files)}')
     return lines
+
+
+def _reasons(counts: dict[str, int]) -> str:
+    return ', '.join(f'{k} {v}' for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) \
+        or 'nothing tried'
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -584,7 +700,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         poses=args.poses, times=args.times, radius=args.radius,
                         max_heading_deg=args.max_heading_deg, out_dir=args.out,
                         load_db=args.load_db, save_db=args.save_db, progress=progress,
-                        plots=not args.no_plots, params_file=args.params)
+                        plots=not args.no_plots, params_file=args.params,
+                        max_pose_error_m=args.max_pose_error_m,
+                        max_pose_error_deg=args.max_pose_error_deg,
+                        target_precision=args.target_precision)
     except SolidError as err:
         print(f'{PROG}: error: {" ".join(str(err).split())}', file=sys.stderr)
         return 1

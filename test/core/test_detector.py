@@ -55,7 +55,8 @@ def test_revisit_is_found_with_fields_and_yaw() -> None:
     assert set(cand.to_dict()) == {'query_index', 'match_index', 'query_stamp_ns',
                                    'match_stamp_ns', 'match_session', 'distance', 'yaw',
                                    'margin', 'verified', 'pose', 'fitness', 'rmse',
-                                   'covariance', 'reason', 'overlap'}
+                                   'covariance', 'reason', 'overlap', 'conflict', 'constraint',
+                                   'spread'}
     # Descriptor only: the pose is the yaw guess, nothing verified.
     assert (cand.verified, cand.reason) == (False, 'descriptor')
     assert cand.pose[:3] == (0.0, 0.0, 0.0) and math.isnan(cand.fitness)

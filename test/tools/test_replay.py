@@ -209,7 +209,7 @@ def test_cli_runs_and_prints_summary(tmp_path: Path, bags: dict[str, Path],
                  'lines'])
     out, err = capsys.readouterr()
     assert code == 0
-    assert 'Recall@1          1.000' in out and 'distance_threshold:' in out
+    assert 'Recall@1 1.000' in out and 'published loops' in out and 'verify_min_overlap' in out
     assert f'{len(ROUTE)}/{len(ROUTE)} scans' in err  # the final progress line
     report = json.loads((tmp_path / 'o' / 'report.json').read_text())
     assert report['config']['exclude_recent_frames'] == 3
@@ -349,6 +349,17 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
     # The revisit (keyframes ~274-313 see ~19-34) is retrieved: well above chance.
     assert m['recall_at_1'] > 0.2 and m['roc_auc'] > 0.4
     assert 0.0 < m['f1_max'] <= 1.0 and m['f1_max_threshold'] is not None
+    # Published loops with the shipped preset: verified, with a usable relative pose.
+    loops = result.report['loops']
+    assert loops['precision'] >= 0.98 and loops['recall'] >= 0.5, loops
+    assert loops['trans_err_m']['median'] < 0.5 and loops['rot_err_deg']['median'] < 1.5
+    assert result.report['loop_sweep']['recommended'] is not None
+    with (tmp_path / 'candidates.csv').open() as fh:
+        rows = list(csv.DictReader(fh))
+    published = [r for r in rows if r['accepted'] == '1']
+    assert len(published) == loops['published']
+    assert all(r['verified'] == '1' and r['pose_correct'] == '1' for r in published)
+    assert {r['reason'] for r in rows} >= {'verified', 'coarse_overlap'}
     # The odometry topic as reference gives the same ground truth within a few queries.
     via_odom = replay(hku / 'bag', cfg, progress='quiet')
     assert via_odom.metrics is not None

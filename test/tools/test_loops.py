@@ -1,0 +1,57 @@
+"""Tests of solid_ros.tools.loops: pose errors, precision/recall of loops, the overlap sweep."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from solid_ros.core.geometry import rot_z
+from solid_ros.tools.loops import LoopRecord, overlap_sweep, pose_error, score_loops
+
+
+def _T(x: float, yaw_deg: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rot_z(math.radians(yaw_deg))
+    T[0, 3] = x
+    return T
+
+
+def _rec(q: int, m: int, *, published: bool = True, verified: bool = True, ov: float = 0.6,
+         te: float = 0.1, re: float = 0.5) -> LoopRecord:
+    return LoopRecord(q, m, 0, published, verified, 'verified' if verified else 'overlap', ov,
+                      0.05, te, re, 2.0)
+
+
+def test_pose_error_measures_the_difference() -> None:
+    te, re = pose_error(_T(2.0, 10.0), _T(2.0, 10.0))
+    assert te == pytest.approx(0.0, abs=1e-12) and re == pytest.approx(0.0, abs=1e-6)
+    te, re = pose_error(_T(2.5, 14.0), _T(2.0, 10.0))
+    assert re == pytest.approx(4.0) and te == pytest.approx(0.5, abs=0.01)
+    assert all(math.isnan(v) for v in pose_error(np.full((4, 4), np.nan), _T(0.0, 0.0)))
+
+
+def test_score_counts_pose_correct_loops_and_queries() -> None:
+    positives = np.zeros(10, bool)
+    positives[[5, 6, 7, 8]] = True
+    records = [_rec(5, 1), _rec(5, 2, te=1.5), _rec(6, 2, re=4.0), _rec(9, 3),
+               _rec(7, 1, published=False, verified=False)]
+    s = score_loops(records, positives)
+    assert (s['published'], s['correct'], s['false']) == (4, 2, 2)
+    assert s['precision'] == 0.5
+    assert s['recall'] == 0.25  # only query 5 of the four positives has a correct loop
+    assert s['trans_err_m']['count'] == 2 and s['reasons'] == {'verified': 4, 'overlap': 1}
+
+
+def test_sweep_recommends_the_least_overlap_reaching_the_target() -> None:
+    positives = np.ones(10, bool)
+    records = [_rec(1, 0, ov=0.40, te=3.0), _rec(2, 0, ov=0.55), _rec(3, 0, ov=0.7),
+               _rec(4, 0, ov=0.36, verified=False)]
+    sweep = overlap_sweep(records, positives, 0.35)
+    assert sweep['recommended'] == 0.41
+    rows = {r['threshold']: r for r in sweep['rows']}
+    assert (rows[0.35]['tp'], rows[0.35]['fp']) == (2, 1)
+    assert (rows[0.41]['precision'], rows[0.41]['recall']) == (1.0, 0.2)
+    assert overlap_sweep([_rec(1, 0, te=3.0)], positives, 0.35,
+                         target_precision=1.0)['recommended'] is None
