@@ -6,13 +6,18 @@ Typical use::
     for scan in simulate(seed=0, sensor='hdl64', num_scans=200):
         scan.points, scan.pose, scan.stamp_ns, scan.label
 
-and ``ensure_demo_bag()`` for the cached demo bag the demo command replays.
+and ``ensure_demo_bag()`` for the cached demo bag the demo command replays. Options (all
+:class:`DriveConfig` fields, also keywords of ``simulate`` and ``ensure_demo_bag``): sensor
+('hdl64', 'avia_like', 'ouster_like', 'vlp16_like' or a :class:`LidarModel`), route
+('revisits', 'no_revisit' or crossings), nx / ny, scene ('varied', 'lookalike'),
+facade_detail, mount_roll_deg / mount_pitch_deg.
 """
 
 from __future__ import annotations
 
 from solid_ros.sim.bagwriter import (
     DEMO_DEFAULTS,
+    DEMO_SENSORS,
     BagSummary,
     cache_root,
     demo_dir,
@@ -22,14 +27,31 @@ from solid_ros.sim.bagwriter import (
     write_drive,
 )
 from solid_ros.sim.drive import Drive, DriveConfig, SimScan, pose_matrix, simulate
-from solid_ros.sim.lidar import PRESETS, LidarModel, avia_like, cast_scan, hdl64, sensor_model
-from solid_ros.sim.scene import Scene, StreetGrid, build_scene
-from solid_ros.sim.trajectory import LABELS, Trajectory, build_trajectory, revisit_labels
+from solid_ros.sim.lidar import (
+    PRESETS,
+    LidarModel,
+    avia_like,
+    cast_scan,
+    hdl64,
+    ouster_like,
+    sensor_model,
+    vlp16_like,
+)
+from solid_ros.sim.scene import SCENE_STYLES, Scene, StreetGrid, build_scene
+from solid_ros.sim.trajectory import (
+    LABELS,
+    ROUTES,
+    Trajectory,
+    build_trajectory,
+    revisit_labels,
+    serpentine,
+)
 
 __all__ = [
-    'DEMO_DEFAULTS', 'LABELS', 'PRESETS', 'BagSummary', 'Drive', 'DriveConfig', 'LidarModel',
-    'Scene', 'SimScan', 'StreetGrid', 'Trajectory', 'avia_like', 'build_scene',
-    'build_trajectory', 'cache_root', 'cast_scan', 'demo_dir', 'ensure_demo_bag', 'hdl64',
-    'pose_matrix', 'read_kitti_poses', 'revisit_labels', 'sensor_model', 'simulate',
-    'write_bag', 'write_drive',
+    'DEMO_DEFAULTS', 'DEMO_SENSORS', 'LABELS', 'PRESETS', 'ROUTES', 'SCENE_STYLES',
+    'BagSummary', 'Drive', 'DriveConfig', 'LidarModel', 'Scene', 'SimScan', 'StreetGrid',
+    'Trajectory', 'avia_like', 'build_scene', 'build_trajectory', 'cache_root', 'cast_scan',
+    'demo_dir', 'ensure_demo_bag', 'hdl64', 'ouster_like', 'pose_matrix', 'read_kitti_poses',
+    'revisit_labels', 'sensor_model', 'serpentine', 'simulate', 'vlp16_like', 'write_bag',
+    'write_drive',
 ]

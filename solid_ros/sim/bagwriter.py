@@ -6,7 +6,9 @@ A demo directory holds::
     poses.txt       one KITTI 3x4 world <- sensor pose per scan (row-major, 12 numbers)
     times.txt       scan stamps in seconds, one per line, same order
     labels.txt      per scan: index, label (new/same/cross/reverse), index of the revisited scan
-    drive.json      the DriveConfig that made it (with the package version)
+    drive.json      the DriveConfig that made it (sensor model, route and its crossings, grid
+                    size, scene style, facade detail, mounting tilt), the count of each label
+                    and the package version
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from solid_ros.core.errors import BagError
 from solid_ros.formats import poses
 from solid_ros.formats.bags import ODOMETRY, POINTCLOUD2, BagWriter
 from solid_ros.sim.drive import Drive, DriveConfig, SimScan
-from solid_ros.sim.lidar import avia_like, hdl64
+from solid_ros.sim.lidar import avia_like, hdl64, ouster_like, vlp16_like
 
 __all__ = ['BagSummary', 'DEMO_DEFAULTS', 'DEMO_SENSORS', 'cache_root', 'demo_dir',
            'ensure_demo_bag',
@@ -40,7 +42,9 @@ ODOM_TOPIC = '/odom'
 # scans every 2 m) at 512 points per ring, so the cached bag stays near 280 MB.
 DEMO_DEFAULTS: dict[str, Any] = {'seed': 0, 'sensor': hdl64(points_per_ring=512),
                                  'block': 50.0, 'spacing': 2.0}
-DEMO_SENSORS = {'hdl64': DEMO_DEFAULTS['sensor'], 'avia_like': avia_like()}
+# The 360-degree sensors at 512 points per ring, like the hdl64 demo (Ouster's 512 x 10 mode).
+DEMO_SENSORS = {'hdl64': DEMO_DEFAULTS['sensor'], 'avia_like': avia_like(),
+                'ouster_like': ouster_like(points_per_ring=512), 'vlp16_like': vlp16_like()}
 
 
 @dataclass(frozen=True)
@@ -135,8 +139,11 @@ def write_drive(directory: str | Path, drive: Drive) -> Path:
     bag = d / 'bag'
     write_bag(bag, drive, poses_path=d / 'poses.txt', times_path=d / 'times.txt',
               labels_path=d / 'labels.txt')
+    labels = drive.trajectory.label
     meta = {'package_version': __version__, 'num_scans': len(drive),
-            'drive': drive.config.to_dict()}
+            'drive': drive.config.to_dict(),
+            'route_crossings': [list(c) for c in drive.config.crossings],
+            'labels': {str(k): int((labels == k).sum()) for k in sorted(set(labels.tolist()))}}
     (d / 'drive.json').write_text(json.dumps(meta, indent=2, sort_keys=True) + '\n',
                                   encoding='utf-8')
     return bag

@@ -6,21 +6,29 @@ intersects footprints once per azimuth column (primitives x columns, small), kee
 (column, primitive) pairs that meet, and only then expands those pairs over the rings to test
 heights (wall, roof or underside). The ground plane is closed-form per ring. Cost is
 proportional to the pairs actually hit, not to primitives x rays.
+
+A tilted sensor (``mount_roll_deg``, ``mount_pitch_deg``) has no ring of constant elevation in
+the world, so it is cut from a level scan: the level grid covers the elevations (and azimuths)
+the tilted rays reach, at the sensor's own angular spacing; its points are rotated into the
+tilted sensor frame and those inside the sensor's own field of view are kept.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import ConfigError
+from solid_ros.core.geometry import rpy_matrix
 from solid_ros.sim.scene import GROUND_REFLECTIVITY, Scene
 
-__all__ = ['LidarModel', 'PRESETS', 'avia_like', 'cast_scan', 'hdl64', 'sensor_model']
+__all__ = ['LidarModel', 'PRESETS', 'avia_like', 'cast_scan', 'hdl64', 'ouster_like',
+           'sensor_model', 'vlp16_like']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -31,7 +39,8 @@ class LidarModel:
 
     Elevations are evenly spaced over [fov_down_deg, fov_up_deg]; azimuths evenly over the
     horizontal FOV (a full turn when ``fov_width_deg`` is 360). Points come out in the sensor
-    frame: x forward, y left, z up, origin at the optical centre.
+    frame: x forward, y left, z up, origin at the optical centre. A tilted sensor's rings and
+    field of view are those of its own, tilted frame, and its points come out in that frame.
 
     Attributes:
         name: preset name (recorded in the bag's metadata).
@@ -47,6 +56,10 @@ class LidarModel:
         dropout: probability that a ray's return is lost.
         mount_height: sensor height above the ground, metres.
         rate_hz: scan rate, used for stamps.
+        mount_roll_deg: mounting roll about the vehicle's +x axis, degrees.
+        mount_pitch_deg: mounting pitch about the vehicle's +y axis, degrees (right hand:
+            positive tips +x down). Level vehicle frame <- sensor frame is ``Ry(pitch)
+            Rx(roll)``, the convention of the detector's ``mount_*_deg`` parameters.
     """
 
     name: str
@@ -62,6 +75,8 @@ class LidarModel:
     dropout: float = 0.02
     mount_height: float = 1.7
     rate_hz: float = 10.0
+    mount_roll_deg: float = 0.0
+    mount_pitch_deg: float = 0.0
 
     def __post_init__(self) -> None:
         checks: list[tuple[str, Any, bool, str]] = [
@@ -80,10 +95,32 @@ class LidarModel:
             ('dropout', self.dropout, 0.0 <= self.dropout < 1.0, '[0, 1)'),
             ('mount_height', self.mount_height, 0.1 <= self.mount_height <= 10.0, '[0.1, 10]'),
             ('rate_hz', self.rate_hz, 0.1 <= self.rate_hz <= 100.0, '[0.1, 100]'),
+            ('mount_roll_deg', self.mount_roll_deg, -45.0 <= self.mount_roll_deg <= 45.0,
+             '[-45, 45]'),
+            ('mount_pitch_deg', self.mount_pitch_deg, -45.0 <= self.mount_pitch_deg <= 45.0,
+             '[-45, 45]'),
         ]
         for key, value, ok, allowed in checks:
             if not ok:
                 raise ConfigError(f'{key}: {value!r} is out of range; allowed {allowed}')
+        # The level scan a tilt is cut from takes its spacing from the sensor's rays.
+        if self.tilted and (self.rings < 2 or self.fov_up_deg == self.fov_down_deg):
+            raise ConfigError(f'rings: a tilted sensor needs at least 2 rings over a vertical '
+                              f'FOV, got {self.rings} over [{self.fov_down_deg}, '
+                              f'{self.fov_up_deg}]')
+        if self.tilted and self.fov_width_deg < 360.0 and self.points_per_ring < 2:
+            raise ConfigError('points_per_ring: a tilted sensor with a horizontal FOV below 360 '
+                              f'needs at least 2, got {self.points_per_ring}')
+
+    @property
+    def tilted(self) -> bool:
+        """Whether the sensor is mounted with roll or pitch."""
+        return self.mount_roll_deg != 0.0 or self.mount_pitch_deg != 0.0
+
+    def mount_rotation(self) -> FloatArray:
+        """Level vehicle frame <- sensor frame, ``Ry(pitch) Rx(roll)``, 3x3."""
+        return rpy_matrix(math.radians(self.mount_roll_deg), math.radians(self.mount_pitch_deg),
+                          0.0)
 
     @property
     def num_rays(self) -> int:
@@ -136,7 +173,29 @@ def avia_like(**changes: Any) -> LidarModel:
     return model.replace(**changes) if changes else model
 
 
-PRESETS = {'hdl64': hdl64, 'avia_like': avia_like}
+def ouster_like(**changes: Any) -> LidarModel:
+    """A 64-beam 360-degree LiDAR like the Ouster OS1-64: +-22.5 deg, 1024 x 64 rays, 120 m.
+
+    The symmetric vertical FOV (HDL-64E: +2 / -24.8 deg) puts more of a scan on walls and
+    less on the road; 3 cm range noise.
+    """
+    model = LidarModel(name='ouster_like', rings=64, fov_up_deg=22.5, fov_down_deg=-22.5,
+                       points_per_ring=1024, max_range=120.0, range_noise=0.03)
+    return model.replace(**changes) if changes else model
+
+
+def vlp16_like(**changes: Any) -> LidarModel:
+    """A 16-beam 360-degree LiDAR like the Velodyne VLP-16: +-15 deg (2 deg apart), 1800 per ring.
+
+    Sparse rings: far ground and low objects fall between beams.
+    """
+    model = LidarModel(name='vlp16_like', rings=16, fov_up_deg=15.0, fov_down_deg=-15.0,
+                       points_per_ring=1800, max_range=100.0)
+    return model.replace(**changes) if changes else model
+
+
+PRESETS = {'hdl64': hdl64, 'avia_like': avia_like, 'ouster_like': ouster_like,
+           'vlp16_like': vlp16_like}
 
 
 def sensor_model(sensor: str | LidarModel) -> LidarModel:
@@ -199,12 +258,85 @@ def cast_scan(scene: Scene, model: LidarModel, x: float, y: float, yaw: float,
         rng: source of range noise and dropout; without it the scan is noise-free.
 
     Returns:
-        (N, 4) float32 rows x, y, z, intensity in the sensor frame; rays without a return
-        (sky, beyond ``max_range``, dropped out) give no row. Rows are ring-major.
+        (N, 4) float32 rows x, y, z, intensity in the sensor frame (the tilted frame for a
+        tilted sensor: world <- sensor is ``Rz(yaw) Ry(pitch) Rx(roll)`` placed at the sensor);
+        rays without a return (sky, beyond ``max_range``, dropped out) give no row. Rows are
+        ring-major (for a tilted sensor: rings of the level scan it is cut from).
+    """
+    if not model.tilted:
+        xyz, intensity = _cast_level(scene, model, model.elevations(), model.azimuths(), x, y,
+                                     yaw, rng)
+    else:
+        phi, alpha = _level_grid(model)
+        level, intensity = _cast_level(scene, model, phi, alpha, x, y, yaw, rng)
+        rot = model.mount_rotation()
+        # Rows p^T R = (R^T p)^T, written out: a (N, 3) @ (3, 3) matmul is 10x slower.
+        xyz = level[:, 0:1] * rot[0] + level[:, 1:2] * rot[1] + level[:, 2:3] * rot[2]
+        keep = _in_fov(model, xyz)
+        xyz, intensity = xyz[keep], intensity[keep]
+    out = np.empty((len(xyz), 4), dtype=np.float32)
+    out[:, :3] = xyz
+    out[:, 3] = intensity
+    return out
+
+
+def _in_fov(model: LidarModel, xyz: FloatArray) -> npt.NDArray[np.bool_]:
+    """Whether sensor-frame points lie inside the model's field of view (boundary kept)."""
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    # Elevation bounds as z against r tan(bound): no arctan per point.
+    keep: npt.NDArray[np.bool_] = (
+        (xyz[:, 2] >= r * math.tan(math.radians(model.fov_down_deg)))
+        & (xyz[:, 2] <= r * math.tan(math.radians(model.fov_up_deg))))
+    if model.fov_width_deg < 360.0:
+        az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])) - model.fov_center_deg
+        keep &= np.abs((az + 180.0) % 360.0 - 180.0) <= 0.5 * model.fov_width_deg
+    return keep
+
+
+@lru_cache(maxsize=32)
+def _level_grid(model: LidarModel) -> tuple[FloatArray, FloatArray]:
+    """Elevations and azimuths (radians) of the level scan a tilted model is cut from.
+
+    The model's field of view, sampled densely and rotated into the level frame, gives the
+    elevations (and, for a sector sensor, azimuths) its rays reach; the grid covers them, one
+    ray spacing wider on each side, at the model's own ring and column spacing.
+    """
+    n_el, n_az = 91, 361
+    el = np.radians(np.linspace(model.fov_down_deg, model.fov_up_deg, n_el))
+    full = model.fov_width_deg >= 360.0
+    half = 0.5 * model.fov_width_deg
+    az = np.radians(model.fov_center_deg + np.linspace(-180.0 if full else -half,
+                                                       180.0 if full else half, n_az))
+    e, a = np.meshgrid(el, az, indexing='ij')
+    dirs = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1)
+    level = dirs.reshape(-1, 3) @ model.mount_rotation().T
+    lev_el = np.degrees(np.arctan2(level[:, 2], np.hypot(level[:, 0], level[:, 1])))
+    d_el = (model.fov_up_deg - model.fov_down_deg) / (model.rings - 1)
+    lo = max(float(lev_el.min()) - d_el, -89.0)
+    hi = min(float(lev_el.max()) + d_el, 89.0)
+    phi: FloatArray = np.radians(lo + d_el * np.arange(int(math.ceil((hi - lo) / d_el)) + 1))
+    if full:
+        return phi, model.azimuths()
+    d_az = model.fov_width_deg / max(model.points_per_ring - 1, 1)
+    rel = np.degrees(np.arctan2(level[:, 1], level[:, 0])) - model.fov_center_deg
+    rel = (rel + 180.0) % 360.0 - 180.0
+    a_lo, a_hi = float(rel.min()) - d_az, float(rel.max()) + d_az
+    if a_hi - a_lo >= 360.0 - d_az:  # a view that reaches a pole sees every azimuth
+        a_lo, a_hi = -180.0, 180.0 - d_az
+    count = int(math.ceil((a_hi - a_lo) / d_az)) + 1
+    alpha: FloatArray = np.radians(model.fov_center_deg + a_lo + d_az * np.arange(count))
+    return phi, alpha
+
+
+def _cast_level(scene: Scene, model: LidarModel, phi: FloatArray, alpha: FloatArray, x: float,
+                y: float, yaw: float, rng: np.random.Generator | None
+                ) -> tuple[FloatArray, FloatArray]:
+    """Cast a level scan with ring elevations ``phi`` and column azimuths ``alpha`` (radians).
+
+    Returns:
+        (N, 3) float64 points in the level sensor frame and their (N,) intensities.
     """
     oz = model.mount_height
-    phi = model.elevations()
-    alpha = model.azimuths()
     theta = alpha + yaw
     tan_phi = np.tan(phi)
     n_a = len(alpha)
@@ -245,12 +377,12 @@ def cast_scan(scene: Scene, model: LidarModel, x: float, y: float, yaw: float,
     if rng is not None and model.range_noise > 0.0:
         rng_r = rng_r + model.range_noise * rng.standard_normal(len(rng_r))
     cos_phi = np.cos(phi)[ring]
-    out = np.empty((len(ring), 4), dtype=np.float32)
-    out[:, 0] = rng_r * cos_phi * np.cos(alpha)[col]
-    out[:, 1] = rng_r * cos_phi * np.sin(alpha)[col]
-    out[:, 2] = rng_r * np.sin(phi)[ring]
-    out[:, 3] = refl.T[ring, col]
-    return out
+    xyz = np.empty((len(ring), 3))
+    xyz[:, 0] = rng_r * cos_phi * np.cos(alpha)[col]
+    xyz[:, 1] = rng_r * cos_phi * np.sin(alpha)[col]
+    xyz[:, 2] = rng_r * np.sin(phi)[ring]
+    intensity: FloatArray = refl.T[ring, col]
+    return xyz, intensity
 
 
 def _hit_pairs(col: npt.NDArray[np.intp], prim: npt.NDArray[np.intp], s_in: FloatArray,

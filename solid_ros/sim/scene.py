@@ -4,6 +4,13 @@ Everything stands on the ground plane z = 0 and is a vertical prism: a box with 
 yawed) rectangular footprint, or a cylinder with a circular one, each spanning heights
 [z_low, z_high]. Buildings line both sides of a grid of straight roads; poles, trees (trunk plus
 a raised crown cylinder) and parked cars make the street distinctive at close range.
+
+Two styles: 'varied' gives every street side its own character (set-back, height, open lots)
+and trees to some streets; 'lookalike' gives every street side the same character and every
+street the same furniture, so that places differ only by the random widths, gaps and depths
+of buildings and the random positions of furniture (a hard case for a place descriptor, not
+an impossible one). ``facade_detail`` adds relief to the otherwise flat building boxes:
+recessed entrances, bay fronts and stepped upper floors, all made of more prisms.
 """
 
 from __future__ import annotations
@@ -16,12 +23,39 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import ConfigError
 
-__all__ = ['Scene', 'StreetGrid', 'build_scene']
+__all__ = ['LOOKALIKE_JITTER', 'SCENE_STYLES', 'Scene', 'StreetGrid', 'build_scene']
 
 FloatArray = npt.NDArray[np.float64]
 
 # Reflectivity classes (the intensity channel of simulated points).
 GROUND_REFLECTIVITY = 0.15
+
+SCENE_STYLES = ('varied', 'lookalike')
+
+# Road jitter of a 'lookalike' grid (fraction of a block): nearly regular, not exactly.
+LOOKALIKE_JITTER = 0.03
+
+
+@dataclass(frozen=True)
+class _Style:
+    """How buildings and furniture vary; None draws a value per street side."""
+
+    setback: float | None
+    height: float | None
+    open_lots: float | None
+    setback_jitter: float
+    height_sigma: float
+    yaw_probability: float
+    trees_always: bool
+
+
+# 'varied' draws in exactly the order of the first release, so its scenes stay the same.
+_STYLES = {
+    'varied': _Style(setback=None, height=None, open_lots=None, setback_jitter=2.5,
+                     height_sigma=0.35, yaw_probability=0.2, trees_always=False),
+    'lookalike': _Style(setback=3.0, height=12.0, open_lots=0.0, setback_jitter=1.0,
+                        height_sigma=0.15, yaw_probability=0.0, trees_always=True),
+}
 
 
 @dataclass(frozen=True)
@@ -202,7 +236,8 @@ def _side_frame(x0: float, x1: float, y0: float, y1: float,
     return np.array([x1, y0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), y1 - y0
 
 
-def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
+def build_scene(grid: StreetGrid | None = None, seed: int = 0, style: str = 'varied',
+                facade_detail: bool = False) -> Scene:
     """Build a random street scene around ``grid``; the same seed gives the same scene.
 
     Every city block (including one ring of blocks outside the grid) gets buildings of random
@@ -212,16 +247,28 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
     Args:
         grid: road layout; ``StreetGrid()`` when omitted.
         seed: seed of the numpy Generator that places everything.
+        style: 'varied' (each street side its own character) or 'lookalike' (every street
+            side the same character and furniture style; see the module docstring).
+        facade_detail: give buildings recessed entrances, bay fronts and stepped upper floors
+            (drawn from a separate random stream: the rest of the scene stays the same).
 
     Returns:
         The scene.
+
+    Raises:
+        ConfigError: unknown style.
     """
     g = grid if grid is not None else StreetGrid()
+    if style not in _STYLES:
+        raise ConfigError(f'scene: {style!r} is not a scene style; use one of '
+                          f'{", ".join(map(repr, SCENE_STYLES))}')
+    st = _STYLES[style]
     rng = np.random.default_rng([seed, 0x5CE7E])
     boxes: list[list[float]] = []
     box_refl: list[float] = []
     cyls: list[list[float]] = []
     cyl_refl: list[float] = []
+    fronts: list[tuple[int, float]] = []  # building row, side of its front in the box frame
 
     for i in range(-1, g.nx):
         for j in range(-1, g.ny):
@@ -232,19 +279,26 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
             for side in range(4):
                 origin, along, inward, length = _side_frame(x0, x1, y0, y1, side)
                 # Each street side has a character (set-back, height, open lots), so streets
-                # differ from each other more than buildings along one street do.
-                base_setback = rng.uniform(0.5, 9.0)
-                base_height = np.exp(rng.uniform(np.log(5.0), np.log(25.0)))
-                for start, width in _frontage(rng, length, float(rng.uniform(0.0, 0.35))):
-                    setback = base_setback + rng.uniform(0.0, 2.5)
+                # differ from each other more than buildings along one street do ('varied').
+                base_setback = (rng.uniform(0.5, 9.0) if st.setback is None else st.setback)
+                base_height = (np.exp(rng.uniform(np.log(5.0), np.log(25.0)))
+                               if st.height is None else st.height)
+                open_lots = (float(rng.uniform(0.0, 0.35)) if st.open_lots is None
+                             else st.open_lots)
+                # The road is on the side of -inward: which side of the box frame that is.
+                front = float(np.dot(inward, [-along[1], along[0]]))
+                for start, width in _frontage(rng, length, open_lots):
+                    setback = base_setback + rng.uniform(0.0, st.setback_jitter)
                     depth = rng.uniform(8.0, max(9.0, min(22.0, half_depth - setback)))
-                    height = float(np.clip(base_height * np.exp(rng.normal(0.0, 0.35)), 3.0,
-                                           60.0))
+                    height = float(np.clip(base_height * np.exp(rng.normal(0.0,
+                                                                           st.height_sigma)),
+                                           3.0, 60.0))
                     centre = origin + along * (start + 0.5 * width) + inward * (
                         setback + 0.5 * depth)
                     yaw = float(np.arctan2(along[1], along[0]))
-                    if rng.random() < 0.2:
+                    if rng.random() < st.yaw_probability:
                         yaw += np.radians(rng.uniform(-10.0, 10.0))
+                    fronts.append((len(boxes), front))
                     boxes.append([centre[0], centre[1], 0.5 * width, 0.5 * depth, yaw, 0.0,
                                   height])
                     box_refl.append(float(rng.uniform(0.2, 0.9)))
@@ -259,7 +313,10 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
                 (a, wa), (b, wb) = cross(seg), cross(seg + 1)
                 for edge in (-1.0, 1.0):
                     _furnish(rng, horizontal, at, width, a + wa, b - wb, edge, boxes, box_refl,
-                             cyls, cyl_refl)
+                             cyls, cyl_refl, st.trees_always)
+
+    if facade_detail:
+        _add_facade_detail(np.random.default_rng([seed, 0xFACADE]), boxes, box_refl, fronts)
 
     return Scene(grid=g, boxes=np.asarray(boxes, dtype=np.float64).reshape(-1, 7),
                  box_reflectivity=np.asarray(box_refl, dtype=np.float64),
@@ -269,8 +326,12 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0) -> Scene:
 
 def _furnish(rng: np.random.Generator, horizontal: bool, road: float, w: float,
              start: float, end: float, edge: float, boxes: list[list[float]],
-             box_refl: list[float], cyls: list[list[float]], cyl_refl: list[float]) -> None:
-    """Add poles, trees and parked cars along one edge (half width ``w``) of a road segment."""
+             box_refl: list[float], cyls: list[list[float]], cyl_refl: list[float],
+             trees_always: bool = False) -> None:
+    """Add poles, trees and parked cars along one edge (half width ``w``) of a road segment.
+
+    Trees line the edge with probability 1/2, or always with ``trees_always``.
+    """
 
     def at(s: float, offset: float) -> tuple[float, float]:
         return (s, road + edge * offset) if horizontal else (road + edge * offset, s)
@@ -281,7 +342,7 @@ def _furnish(rng: np.random.Generator, horizontal: bool, road: float, w: float,
         cyls.append([x, y, rng.uniform(0.1, 0.2), 0.0, rng.uniform(4.0, 9.0)])
         cyl_refl.append(float(rng.uniform(0.5, 1.0)))
         s += rng.uniform(15.0, 40.0)
-    if rng.random() < 0.5:  # a row of trees on some streets
+    if trees_always or rng.random() < 0.5:  # a row of trees on some streets
         s = start + rng.uniform(2.0, 10.0)
         while s < end:
             x, y = at(s, w + 1.8)
@@ -299,3 +360,66 @@ def _furnish(rng: np.random.Generator, horizontal: bool, road: float, w: float,
                           rng.uniform(1.3, 1.8)])
             box_refl.append(float(rng.uniform(0.3, 1.0)))
         s += rng.uniform(6.0, 12.0)
+
+
+def _add_facade_detail(rng: np.random.Generator, boxes: list[list[float]],
+                       box_refl: list[float], fronts: list[tuple[int, float]]) -> None:
+    """Give the buildings ``fronts`` (box row, front side) relief, as more prisms.
+
+    A building may get stepped upper floors (a lower front part, the full height set back),
+    a recessed entrance (the front wall moved back except beside the door, with a lintel above
+    it) and bay fronts (boxes standing out of the facade from the first floor up).
+    """
+    for row, side in fronts:
+        body, parts = _relief(rng, boxes[row], side)
+        boxes[row] = body
+        boxes.extend(parts)
+        box_refl.extend([box_refl[row]] * len(parts))
+
+
+def _relief(rng: np.random.Generator, building: list[float],
+            side: float) -> tuple[list[float], list[list[float]]]:
+    """The building's main body and its added parts, in the building's frame: u along the
+    street in [-hx, hx], v from the front face into the building in [0, depth]."""
+    hx, height, depth = building[2], building[6], 2.0 * building[3]
+    parts = []
+    front_height = height
+    if height > 9.0 and depth > 10.0 and rng.random() < 0.4:  # stepped upper floors
+        front_height = height * float(rng.uniform(0.4, 0.7))
+        back = float(rng.uniform(2.0, min(5.0, depth - 6.0)))
+        parts.append(_part(building, side, (-hx, hx), (back, depth), (0.0, height)))
+    body_front = 0.0
+    if hx >= 4.0 and rng.random() < 0.5:  # recessed entrance with a lintel
+        recess = float(rng.uniform(0.8, 1.6))
+        door = float(rng.uniform(2.0, 4.0))
+        u0 = float(rng.uniform(-hx + 1.0, hx - 1.0 - door))
+        lintel = min(float(rng.uniform(2.6, 3.5)), front_height - 0.5)
+        parts += [_part(building, side, (-hx, u0), (0.0, recess), (0.0, front_height)),
+                  _part(building, side, (u0 + door, hx), (0.0, recess), (0.0, front_height)),
+                  _part(building, side, (u0, u0 + door), (0.0, recess), (lintel, front_height))]
+        body_front = recess
+    if front_height > 6.0 and rng.random() < 0.5:  # bay fronts from the first floor up
+        count = int(rng.integers(1, 4))
+        slot = 2.0 * hx / count
+        for k in range(count):
+            width = float(rng.uniform(2.0, max(2.0, min(4.0, slot - 1.0))))
+            u0 = -hx + k * slot + float(rng.uniform(0.0, max(slot - width, 0.0)))
+            out = float(rng.uniform(0.5, 1.2))
+            z0 = float(rng.uniform(2.8, 4.0))
+            z1 = front_height - float(rng.uniform(0.0, 1.5))
+            if z1 > z0 + 1.0:
+                parts.append(_part(building, side, (u0, min(u0 + width, hx)), (-out, 0.0),
+                                   (z0, z1)))
+    body = _part(building, side, (-hx, hx), (body_front, depth), (0.0, front_height))
+    return body, parts
+
+
+def _part(building: list[float], side: float, u: tuple[float, float], v: tuple[float, float],
+          z: tuple[float, float]) -> list[float]:
+    """Box row of the part u x v x z of ``building`` (frame of :func:`_relief`); ``side`` is
+    +1 or -1: the front face is at box-frame y = -side * hy."""
+    cx, cy, _, hy, yaw = building[:5]
+    uc, ly = 0.5 * (u[0] + u[1]), side * (0.5 * (v[0] + v[1]) - hy)
+    cos, sin = float(np.cos(yaw)), float(np.sin(yaw))
+    return [cx + cos * uc - sin * ly, cy + sin * uc + cos * ly, 0.5 * (u[1] - u[0]),
+            0.5 * (v[1] - v[0]), yaw, z[0], z[1]]

@@ -1,14 +1,18 @@
-"""A drive through the street grid that revisits places, with ground-truth revisit labels.
+"""Drives through the street grid, with ground-truth revisit labels.
 
-The default route (grid crossings as (column, row) indices) first drives one loop, then
-returns to stretches of it in the same direction, crosses earlier crossings from other
-streets, and ends by driving two earlier blocks in the reverse direction. Every road segment
-gets its own lane offset and a gentle weave, and the heading carries a small smooth jitter, so
-a revisit is never the same pose twice: the sensor is metres to the side and degrees off.
+Routes are grid crossings as (column, row) indices. The default route, 'revisits', first
+drives one loop, then returns to stretches of it in the same direction, crosses earlier
+crossings from other streets, and ends by driving two earlier blocks in the reverse direction.
+'no_revisit' is a serpentine that drives every row of a larger grid once, alternately east and
+west, and never comes back to a place: every scan is new (for false-positive rates). Every
+road segment gets its own lane offset and a gentle weave, and the heading carries a small
+smooth jitter, so a revisit is never the same pose twice: the sensor is metres to the side and
+degrees off.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,12 +21,15 @@ import numpy.typing as npt
 from solid_ros.core.errors import ConfigError
 from solid_ros.sim.scene import StreetGrid
 
-__all__ = ['DEFAULT_ROUTE', 'LABELS', 'Trajectory', 'build_trajectory', 'revisit_labels']
+__all__ = ['DEFAULT_ROUTE', 'LABELS', 'NO_REVISIT_ROUTE', 'ROUTES', 'Route', 'Trajectory',
+           'build_trajectory', 'resolve_route', 'revisit_labels', 'route_grid', 'serpentine']
 
 FloatArray = npt.NDArray[np.float64]
 
+Route = tuple[tuple[int, int], ...]
+
 # Needs a grid of at least 4 x 3 roads.
-DEFAULT_ROUTE: tuple[tuple[int, int], ...] = (
+DEFAULT_ROUTE: Route = (
     (0, 0), (2, 0), (2, 1), (0, 1), (0, 0),  # first loop: everything new
     (1, 0),  # same direction as the loop
     (1, 1),  # new street, reaching a crossing of the loop from the south
@@ -33,7 +40,64 @@ DEFAULT_ROUTE: tuple[tuple[int, int], ...] = (
     (1, 0), (0, 0),  # reverse: earlier blocks driven the other way
 )
 
+
+
+def serpentine(nx: int, ny: int) -> Route:
+    """Every east-west road of an ``nx`` x ``ny`` grid once, alternately east and west, joined
+    at the ends by one block of the outermost north-south roads: no road piece twice."""
+    if nx < 2 or ny < 1:
+        raise ConfigError(f'serpentine: needs nx >= 2 and ny >= 1, got {nx}, {ny}')
+    route: list[tuple[int, int]] = []
+    for j in range(ny):
+        first, last = (0, nx - 1) if j % 2 == 0 else (nx - 1, 0)
+        route += [(first, j), (last, j)]
+    return tuple(route)
+
+
+# 6 rows of 6 blocks plus 5 joining blocks: 41 blocks, about 2 km at 50 m blocks (3.3 km at
+# 80 m). Neighbouring rows are at least 0.6 blocks apart (road jitter), far beyond any
+# revisit radius.
+NO_REVISIT_ROUTE: Route = serpentine(7, 6)
+
+ROUTES: dict[str, Route] = {'revisits': DEFAULT_ROUTE, 'no_revisit': NO_REVISIT_ROUTE}
+
 LABELS = ('new', 'same', 'cross', 'reverse')
+
+
+def resolve_route(route: str | Sequence[Sequence[int]]) -> Route:
+    """Return the crossings of a named route (see :data:`ROUTES`) or a custom one.
+
+    Raises:
+        ConfigError: unknown name, fewer than two crossings, or a crossing that is not two
+            non-negative integers. (Steps along one road are checked by
+            :func:`build_trajectory`, which knows the grid.)
+    """
+    if isinstance(route, str):
+        try:
+            return ROUTES[route]
+        except KeyError as err:
+            raise ConfigError(f'route: {route!r} is not a route; use one of '
+                              f'{", ".join(map(repr, ROUTES))} or a tuple of (column, row) '
+                              'crossings') from err
+    out: list[tuple[int, int]] = []
+    try:
+        for c in route:
+            i, j = c
+            if any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0
+                   for v in (i, j)):
+                raise ValueError
+            out.append((int(i), int(j)))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f'route: expected a route name or (column, row) pairs of '
+                          f'non-negative integers, got {route!r}') from err
+    if len(out) < 2:
+        raise ConfigError('route: needs at least two crossings')
+    return tuple(out)
+
+
+def route_grid(route: Route) -> tuple[int, int]:
+    """The smallest grid (nx, ny) that holds ``route`` (at least 2 x 2)."""
+    return max(2, max(i for i, _ in route) + 1), max(2, max(j for _, j in route) + 1)
 
 _STEP = 0.25  # metres between samples of the fine path
 
@@ -75,7 +139,7 @@ def _smooth(values: FloatArray, window: int) -> FloatArray:
 
 
 def build_trajectory(grid: StreetGrid, seed: int = 0, spacing: float = 2.0,
-                     route: tuple[tuple[int, int], ...] = DEFAULT_ROUTE,
+                     route: Route = DEFAULT_ROUTE,
                      revisit_radius: float = 6.0, exclude_distance: float = 60.0) -> Trajectory:
     """Sample sensor poses every ``spacing`` metres along ``route``.
 

@@ -13,6 +13,7 @@ import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,10 +23,15 @@ from solid_ros.tools.replay import ReplayResult, load_config, replay, summary_li
 from solid_ros.tools.replay import main as replay_main
 from solid_ros.tools.runtime import tune_allocator
 
-__all__ = ['main', 'revisit_table', 'shipped_config']
+__all__ = ['config_overrides', 'drive_options', 'main', 'revisit_table', 'shipped_config']
 
 PROG = 'solid_demo'
-SENSOR_PARAMS = {'hdl64': 'hdl64.yaml', 'avia_like': 'avia.yaml'}
+SENSOR_PARAMS = {'hdl64': 'hdl64.yaml', 'avia_like': 'avia.yaml', 'ouster_like': 'hdl64.yaml',
+                 'vlp16_like': 'hdl64.yaml'}
+# Sensors replayed with another sensor's shipped file take their own vertical FOV into it.
+OWN_VERTICAL_FOV = ('ouster_like', 'vlp16_like')
+ROUTE_CHOICES = ('revisits', 'no_revisit')
+SCENE_CHOICES = ('varied', 'lookalike')
 
 
 def shipped_config(name: str) -> Path:
@@ -76,6 +82,28 @@ def revisit_table(result: ReplayResult, labels_path: Path,
             for k, n in sorted(seen.items())]
 
 
+def drive_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The simulated drive's options (:class:`solid_ros.sim.DriveConfig` fields) from the
+    command line; options left at their defaults give the default drive (and cache entry)."""
+    from solid_ros.sim.bagwriter import DEMO_SENSORS
+
+    return {'seed': args.seed, 'sensor': DEMO_SENSORS[args.sensor], 'route': args.route,
+            'scene': args.scene, 'facade_detail': args.facade_detail,
+            'mount_roll_deg': args.tilt_roll_deg, 'mount_pitch_deg': args.tilt_pitch_deg}
+
+
+def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """Detector settings the command line changes in the parameter file: ``--fov``, and the
+    vertical FOV of a sensor that replays another sensor's shipped file."""
+    from solid_ros.sim.bagwriter import DEMO_SENSORS
+
+    out: dict[str, Any] = {} if args.fov is None else {'fov_width_deg': args.fov}
+    if args.params is None and args.sensor in OWN_VERTICAL_FOV:
+        model = DEMO_SENSORS[args.sensor]
+        out.update(fov_up_deg=model.fov_up_deg, fov_down_deg=model.fov_down_deg)
+    return out
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG, usage='%(prog)s [options]  |  %(prog)s BAG [solid_replay options]',
@@ -84,8 +112,22 @@ def _parser() -> argparse.ArgumentParser:
         'detector with the shipped YAML, print scores and write plots. With BAG: the same as '
         'solid_replay BAG [options] (see solid_replay --help).')
     p.add_argument('--sensor', choices=sorted(SENSOR_PARAMS), default='hdl64',
-                   help='simulated sensor: 64-beam 360-degree or 70-degree solid-state '
-                   '(default hdl64)')
+                   help='simulated sensor: 64-beam 360-degree (hdl64: +2/-24.8 deg, '
+                   'ouster_like: +-22.5 deg), 16-beam 360-degree (vlp16_like) or 70-degree '
+                   'solid-state (avia_like) (default hdl64)')
+    p.add_argument('--route', choices=ROUTE_CHOICES, default='revisits',
+                   help='revisits: loops back to earlier places; no_revisit: a 2 km serpentine '
+                   'that never returns, every scan new (default revisits)')
+    p.add_argument('--scene', choices=SCENE_CHOICES, default='varied',
+                   help='varied: every street its own character; lookalike: every street the '
+                   'same character, places differ only in detail (default varied)')
+    p.add_argument('--facade-detail', action='store_true',
+                   help='give buildings entrances, bay fronts and stepped upper floors')
+    p.add_argument('--tilt-roll-deg', type=float, default=None, metavar='DEG',
+                   help='sensor mounting roll in degrees (default 0)')
+    p.add_argument('--tilt-pitch-deg', type=float, default=None, metavar='DEG',
+                   help='sensor mounting pitch in degrees, positive tips the front down '
+                   '(default 0)')
     p.add_argument('--params', type=Path, default=None,
                    help='parameter YAML (default: the shipped preset for --sensor)')
     p.add_argument('--fov', type=float, default=None,
@@ -109,14 +151,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(args_in)
     tune_allocator()
     try:
-        from solid_ros.sim.bagwriter import DEMO_SENSORS, ensure_demo_bag
+        from solid_ros.sim.bagwriter import ensure_demo_bag
 
         if not args.quiet:
             print(f'{PROG}: preparing the simulated drive ({args.sensor}, seed {args.seed})...',
                   file=sys.stderr, flush=True)
-        bag = ensure_demo_bag(args.cache_dir, seed=args.seed, sensor=DEMO_SENSORS[args.sensor])
+        bag = ensure_demo_bag(args.cache_dir, **drive_options(args))
         params = args.params or shipped_config(SENSOR_PARAMS[args.sensor])
-        overrides = {} if args.fov is None else {'fov_width_deg': args.fov}
+        overrides = config_overrides(args)
         config, node_config = load_config(params, 'solid_node', overrides)
         result = replay(bag, config, node_config=node_config, poses=bag.parent / 'poses.txt',
                         times=bag.parent / 'times.txt', radius=args.radius,

@@ -1,0 +1,119 @@
+"""Drive options: DriveConfig, simulate and ensure_demo_bag pass them through; defaults keep
+the drive and its cache key as they were."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from solid_ros import __version__
+from solid_ros.core.errors import ConfigError
+from solid_ros.sim import (
+    DEMO_DEFAULTS,
+    DEMO_SENSORS,
+    Drive,
+    DriveConfig,
+    demo_dir,
+    ensure_demo_bag,
+    read_kitti_poses,
+    simulate,
+    vlp16_like,
+)
+from solid_ros.sim.scene import LOOKALIKE_JITTER
+
+
+def test_default_drive_keeps_its_cache_key() -> None:
+    # The keys of the cached demo bags made before the new options existed.
+    hdl = DriveConfig(**DEMO_DEFAULTS)
+    assert hdl.fingerprint() == '194e4ed936b62d53'
+    assert demo_dir(hdl, '/c').name == f'hdl64-194e4ed936b62d53-{__version__}'
+    avia = DriveConfig(**{**DEMO_DEFAULTS, 'sensor': DEMO_SENSORS['avia_like']})
+    assert avia.fingerprint() == 'f1146a71d351df42'
+    # The defaults spelt out are the same drive.
+    spelt = DriveConfig(**DEMO_DEFAULTS, route='revisits', nx=4, ny=3, scene='varied',
+                        facade_detail=False, mount_roll_deg=0.0, mount_pitch_deg=0.0)
+    assert spelt.fingerprint() == hdl.fingerprint()
+
+
+def test_default_drive_is_unchanged() -> None:
+    # Figures of the first release's default drive (scans are also compared bit for bit
+    # against it while developing; tolerances here only absorb other CPUs' last bits).
+    d = Drive(DriveConfig())
+    assert (len(d.scene.boxes), len(d.scene.cylinders), len(d)) == (297, 317, 892)
+    assert d.scene.boxes.sum() == pytest.approx(62493.51584814436, rel=1e-9)
+    assert d.scene.cylinders.sum() == pytest.approx(60364.43578324666, rel=1e-9)
+    assert d.trajectory.xy.sum() == pytest.approx(110751.17527299814, rel=1e-9)
+    scan = next(simulate(seed=0, sensor='hdl64', num_scans=1))
+    assert abs(len(scan.cloud) - 62845) <= 3
+    np.testing.assert_allclose(scan.cloud.astype(np.float64).mean(axis=0),
+                               [-0.33651371, -0.06298375, -1.42857309, 0.24230477], atol=1e-5)
+
+
+@pytest.mark.parametrize('option', [
+    {'route': 'no_revisit'}, {'route': ((0, 0), (2, 0))}, {'nx': 5}, {'scene': 'lookalike'},
+    {'facade_detail': True}, {'mount_pitch_deg': 3.0}, {'sensor': 'ouster_like'},
+    {'sensor': 'vlp16_like'}])
+def test_every_option_names_another_drive(option: dict[str, object]) -> None:
+    assert DriveConfig(**{**DEMO_DEFAULTS, **option}).fingerprint() != DriveConfig(
+        **DEMO_DEFAULTS).fingerprint()
+
+
+def test_grid_follows_the_route() -> None:
+    assert DriveConfig().grid_size == (4, 3)
+    assert DriveConfig(route='no_revisit').grid_size == (7, 6)
+    assert DriveConfig(route=[[0, 0], [0, 1]]).grid_size == (2, 2)
+    assert DriveConfig(nx=6, ny=5).grid_size == (6, 5)
+    bigger = Drive(DriveConfig(block=40.0, nx=6, ny=5))
+    assert (bigger.grid.nx, bigger.grid.ny) == (6, 5)
+    assert len(bigger.scene.boxes) > len(Drive(DriveConfig(block=40.0)).scene.boxes)
+    with pytest.raises(ConfigError, match='nx'):
+        DriveConfig(route='no_revisit', nx=5)
+    with pytest.raises(ConfigError, match='ny'):
+        DriveConfig(ny=2.5)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match='route'):
+        DriveConfig(route='spiral')
+
+
+def test_options_reach_the_scans() -> None:
+    options = {'block': 40.0, 'spacing': 10.0, 'route': [[0, 0], [2, 0], [2, 1]],
+               'scene': 'lookalike', 'facade_detail': True, 'mount_pitch_deg': 3.0}
+    config = DriveConfig(sensor=vlp16_like(points_per_ring=300), **options)
+    assert config.route == ((0, 0), (2, 0), (2, 1)) and hash(config)  # frozen, hashable
+    assert config.model.mount_pitch_deg == 3.0 and config.model.name == 'vlp16_like'
+    drive = Drive(config)
+    assert drive.grid.jitter == LOOKALIKE_JITTER and (drive.grid.nx, drive.grid.ny) == (3, 2)
+    scans = list(simulate(seed=0, sensor=vlp16_like(points_per_ring=300), num_scans=2,
+                          **options))
+    np.testing.assert_array_equal(scans[1].cloud, drive.scan(1).cloud)
+    assert scans[0].pose[2, 0] == pytest.approx(-np.sin(np.radians(3.0)))
+    assert np.allclose(scans[0].pose[:2, 3], drive.grid.node(0, 0), atol=4.0)
+    # A tilt given to the drive overrides the model's; None keeps it.
+    tilted = vlp16_like(mount_roll_deg=4.0)
+    assert DriveConfig(sensor=tilted).model.mount_roll_deg == 4.0
+    assert DriveConfig(sensor=tilted, mount_roll_deg=0.0).model.tilted is False
+
+
+def test_demo_bag_records_the_options(tmp_path: Path) -> None:
+    options = {'sensor': vlp16_like(points_per_ring=180), 'block': 40.0, 'spacing': 10.0,
+               'route': ((0, 0), (2, 0), (2, 1)), 'scene': 'lookalike', 'facade_detail': True,
+               'mount_roll_deg': 2.0}
+    bag = ensure_demo_bag(cache_dir=tmp_path, **options)
+    entry = bag.parent
+    assert entry == demo_dir(DriveConfig(**{**DEMO_DEFAULTS, **options}), tmp_path)
+    meta = json.loads((entry / 'drive.json').read_text())
+    drive = meta['drive']
+    assert drive['route'] == [[0, 0], [2, 0], [2, 1]] and meta['route_crossings'] == [
+        [0, 0], [2, 0], [2, 1]]
+    assert (drive['nx'], drive['ny'], drive['scene'], drive['facade_detail']) == (
+        3, 2, 'lookalike', True)
+    assert drive['sensor']['name'] == 'vlp16_like' and drive['sensor']['mount_roll_deg'] == 2.0
+    labels = (entry / 'labels.txt').read_text().split()[1::3]
+    assert meta['labels'] == {'new': meta['num_scans']} and labels == ['new'] * meta[
+        'num_scans']
+    poses = read_kitti_poses(entry / 'poses.txt')
+    reference = Drive(DriveConfig(**{**DEMO_DEFAULTS, **options})).poses()
+    np.testing.assert_allclose(poses, reference, atol=1e-8)
+    assert poses[0, 2, 1] == pytest.approx(np.sin(np.radians(2.0)))  # the roll is recorded

@@ -1,0 +1,109 @@
+"""Scene styles ('varied', 'lookalike') and facade detail."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.descriptor import describe
+from solid_ros.core.errors import ConfigError
+from solid_ros.sim import Drive, DriveConfig, StreetGrid, build_scene, cast_scan, hdl64
+from solid_ros.sim.drive import pose_matrix
+from solid_ros.sim.scene import LOOKALIKE_JITTER
+
+
+def _buildings(scene_boxes: np.ndarray) -> np.ndarray:
+    """Building rows (cars are the boxes raised 0.3 m off the ground)."""
+    return scene_boxes[scene_boxes[:, 5] == 0.0]
+
+
+def test_unknown_style() -> None:
+    with pytest.raises(ConfigError, match='scene'):
+        build_scene(style='identical')
+    with pytest.raises(ConfigError, match='scene'):
+        DriveConfig(scene='identical')
+    with pytest.raises(ConfigError, match='facade_detail'):
+        DriveConfig(facade_detail='yes')  # type: ignore[arg-type]
+
+
+def test_lookalike_streets_share_one_character() -> None:
+    grid = StreetGrid(block=50.0, nx=5, ny=4, jitter=LOOKALIKE_JITTER, seed=1)
+    varied = _buildings(build_scene(StreetGrid(block=50.0, nx=5, ny=4, seed=1), 1).boxes)
+    alike = _buildings(build_scene(grid, 1, style='lookalike').boxes)
+    # Heights: one distribution everywhere instead of a character per street side.
+    p5, p95 = np.percentile(alike[:, 6], [5, 95])
+    assert 8.0 < p5 and p95 < 18.0
+    v5, v95 = np.percentile(varied[:, 6], [5, 95])
+    assert v95 / v5 > 3.0
+    # Buildings square to their street ...
+    assert np.all(np.isclose(np.mod(alike[:, 4], np.pi / 2), 0.0, atol=1e-9)
+                  | np.isclose(np.mod(alike[:, 4], np.pi / 2), np.pi / 2, atol=1e-9))
+    # ... but not copies: widths and depths still differ.
+    assert np.std(2 * alike[:, 2]) > 3.0 and np.std(2 * alike[:, 3]) > 1.0
+    # A nearly regular grid.
+    for i in range(grid.nx):
+        assert abs(grid.road_x(i)[0] - 50.0 * i) <= LOOKALIKE_JITTER * 50.0 + 1e-9
+    # Trees on every street (crowns are cylinders off the ground).
+    crowns = [c for c in build_scene(grid, 1, style='lookalike').cylinders if c[3] > 1.0]
+    crowns_v = [c for c in build_scene(StreetGrid(block=50.0, nx=5, ny=4, seed=1), 1).cylinders
+                if c[3] > 1.0]
+    assert len(crowns) > 1.5 * len(crowns_v)
+
+
+def _best_far_distances(scene: str, seed: int) -> np.ndarray:
+    """For every 25th scan of a drive that never revisits: the smallest cosine distance of
+    its R-SOLiD to a scan of a place at least 20 m away."""
+    drive = Drive(DriveConfig(seed=seed, sensor=hdl64(points_per_ring=512), block=50.0,
+                              route='no_revisit', scene=scene))
+    idx = np.arange(0, len(drive), 25)
+    r = np.stack([describe(drive.scan(int(i)).points, SolidConfig()).r_solid for i in idx])
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    xy = drive.trajectory.xy[idx]
+    far = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)) >= 20.0
+    out: np.ndarray = np.where(far, 1.0 - r @ r.T, np.inf).min(axis=1)
+    return out
+
+
+def test_lookalike_places_look_alike_to_the_descriptor() -> None:
+    varied = np.concatenate([_best_far_distances('varied', s) for s in (0, 1)])
+    alike = np.concatenate([_best_far_distances('lookalike', s) for s in (0, 1)])
+    ratio = float(np.median(alike) / np.median(varied))
+    print(f'best distance to a place >= 20 m away, median: varied {np.median(varied):.4f}, '
+          f'lookalike {np.median(alike):.4f} ({ratio:.2f})')
+    assert ratio < 0.9
+    assert alike.min() > 1e-3  # similar, never copies
+
+
+def test_facade_detail_adds_relief_and_nothing_else() -> None:
+    grid = StreetGrid(block=40.0, seed=2)
+    flat = build_scene(grid, 2)
+    relief = build_scene(grid, 2, facade_detail=True)
+    # The rest of the scene is drawn as before: same furniture, same cars, same plots.
+    np.testing.assert_array_equal(relief.cylinders, flat.cylinders)
+    n = len(flat.boxes)
+    assert len(relief.boxes) > n + 0.5 * len(_buildings(flat.boxes))
+    changed = np.any(relief.boxes[:n] != flat.boxes[:n], axis=1)
+    building = flat.boxes[:, 5] == 0.0
+    assert 0.3 < changed[building].mean() < 0.9  # many buildings, not all
+    assert not changed[~building].any()  # never a car
+    body, before = relief.boxes[:n][changed], flat.boxes[changed]
+    assert np.all(body[:, 2:4] <= before[:, 2:4] + 1e-9) and np.all(body[:, 6] <= before[:, 6])
+    parts = relief.boxes[n:]
+    assert np.any(parts[:, 5] > 2.0)  # bay fronts and lintels hang above the pavement
+
+
+def test_facade_detail_scan_lands_on_the_scene() -> None:
+    drive = Drive(DriveConfig(seed=2, block=40.0, spacing=10.0, facade_detail=True,
+                              scene='lookalike'))
+    flat = Drive(DriveConfig(seed=2, block=40.0, spacing=10.0, scene='lookalike'))
+    model = hdl64(points_per_ring=256)
+    for i in (3, 11):
+        x, y, yaw = (float(v) for v in (*drive.trajectory.xy[i], drive.trajectory.yaw[i]))
+        cloud = cast_scan(drive.scene, model, x, y, yaw)
+        world = cloud[:, :3].astype(np.float64) @ pose_matrix(x, y, model.mount_height,
+                                                             yaw)[:3, :3].T
+        world += [x, y, model.mount_height]
+        assert drive.scene.surface_distance(world).max() < 1e-3
+        # Relief was seen: points on bays, recesses and set-back floors are off the flat boxes.
+        assert np.sum(flat.scene.surface_distance(world) > 0.3) > 20
