@@ -268,7 +268,7 @@ def _recall(drive: Drive, scans: list[SimScan], fov: float,
     """Recall@1 and yaw errors (degrees, correct matches) per label, threshold off."""
     t = drive.trajectory
     exclude = int(drive.config.exclude_distance / drive.config.spacing)
-    det = LoopDetector(SolidConfig(fov_width_deg=fov, distance_threshold=2.0,
+    det = LoopDetector(SolidConfig(fov_width_deg=fov, distance_threshold=2.0, verify=False,
                                    exclude_recent_frames=exclude,
                                    heading_weight=heading_weight))
     top: dict[int, LoopCandidate] = {}
