@@ -130,8 +130,9 @@ def overlap_sweep(records: Sequence[LoopRecord], positives: npt.ArrayLike, curre
     """Precision and recall as ``verify_min_overlap`` rises from ``current``.
 
     Returns:
-        ``rows`` (threshold, precision, recall, tp, fp) and ``recommended`` (the smallest
-        threshold reaching ``target_precision``; None when none does).
+        ``rows`` (threshold, precision, recall, tp, fp), ``recommended`` (the smallest
+        threshold reaching ``target_precision``; None when none does) and ``recall`` (the
+        recall there).
     """
     pos = np.asarray(positives, dtype=bool)
     n_pos = int(pos.sum())
@@ -140,6 +141,7 @@ def overlap_sweep(records: Sequence[LoopRecord], positives: npt.ArrayLike, curre
                                            for r in passed if r.overlap >= current})
     rows = []
     recommended = None
+    recall: float | None = None
     for t in levels:
         kept = [r for r in passed if r.overlap >= t]
         good = [r for r in kept if r.correct(max_error_m, max_error_deg)]
@@ -150,5 +152,6 @@ def overlap_sweep(records: Sequence[LoopRecord], positives: npt.ArrayLike, curre
                      'recall': len(found) / n_pos if n_pos else 0.0, 'tp': tp, 'fp': fp})
         if recommended is None and precision >= target_precision and tp > 0:
             recommended = round(t, 4)
+            recall = rows[-1]['recall']
     return {'parameter': 'verify_min_overlap', 'target_precision': target_precision,
-            'rows': rows, 'recommended': recommended}
+            'rows': rows, 'recommended': recommended, 'recall': recall}
