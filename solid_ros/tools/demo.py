@@ -16,8 +16,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
+from solid_ros.formats.poses import associate, read_times
 from solid_ros.tools.evaluation import relative_yaws
 from solid_ros.tools.replay import ReplayResult, load_config, replay, summary_lines
 from solid_ros.tools.replay import main as replay_main
@@ -47,30 +49,47 @@ def shipped_config(name: str) -> Path:
         raise SolidError(f'shipped parameter file {name} not found') from err
 
 
-def revisit_table(result: ReplayResult, labels_path: Path,
-                  radius: float) -> list[tuple[str, int, int, float]]:
-    """Per revisit kind: (kind, revisits, found, mean yaw error in degrees of the found).
+def _keyframe_scans(result: ReplayResult, times_path: Path) -> npt.NDArray[np.intp]:
+    """Scan index of each keyframe, by stamp (keyframe gating may skip scans); -1: unknown.
 
-    A revisit counts as found when a loop was published for it whose relative pose is
-    correct (within the replay's pose limits of the reference); the yaw error is that loop's.
-    ``radius`` is kept for the caller's header.
+    times.txt holds decimal seconds (float-rounded by the simulator), so stamps pair with the
+    nearest scan within 1 ms.
+    """
+    scan_stamps = read_times(times_path)
+    return associate(result.stamps_ns, scan_stamps, 1_000_000)
+
+
+def revisit_table(result: ReplayResult, labels_path: Path,
+                  radius: float) -> list[tuple[str, int, int, float, int]]:
+    """Per revisit kind: (kind, revisits, found, mean yaw error in degrees of the found,
+    descriptor top-1 hits).
+
+    A revisit (a keyframe whose scan is labelled other than ``new``) counts as found when a
+    loop was published for it whose relative pose is correct (within the replay's pose limits
+    of the reference); the yaw error is that loop's. Descriptor top-1: its best descriptor
+    match, published or not, lies within the replay's radius. ``radius`` is kept for the
+    caller's header.
     """
     rows = [line.split() for line in labels_path.read_text().splitlines() if line.strip()]
-    kinds = {int(r[0]): r[1] for r in rows}
+    labels = {int(r[0]): r[1] for r in rows}
     loops = result.report.get('loops')
-    if result.reference is None or loops is None:
+    ev = result.evaluation
+    if result.reference is None or loops is None or ev is None:
         return []
+    scan_of = _keyframe_scans(result, labels_path.parent / 'times.txt')
+    kinds = [labels.get(int(i), 'new') if i >= 0 else 'new' for i in scan_of]
     limits = (loops['max_error_m'], loops['max_error_deg'])
     published = {(c.query_index, c.match_index, c.match_session): c for c in result.candidates}
     rot = result.reference[:, :3, :3]
     seen: dict[str, int] = {}
+    top1: dict[str, int] = {}
     errors: dict[str, dict[int, float]] = {}
-    for q in range(len(result.reference)):
-        kind = kinds.get(q, 'new')
+    for q, kind in enumerate(kinds):
         if kind != 'new':
             seen[kind] = seen.get(kind, 0) + 1
+            top1[kind] = top1.get(kind, 0) + int(ev.has_best[q] and ev.correct[q])
     for rec in result.records:
-        kind = kinds.get(rec.query, 'new')
+        kind = kinds[rec.query] if 0 <= rec.query < len(kinds) else 'new'
         if kind == 'new' or not rec.published or not rec.correct(*limits):
             continue
         c = published[(rec.query, rec.match, rec.session)]
@@ -78,7 +97,8 @@ def revisit_table(result: ReplayResult, labels_path: Path,
         errors.setdefault(kind, {}).setdefault(
             rec.query, abs(math.degrees(math.remainder(c.yaw - truth, 2 * math.pi))))
     return [(k, n, len(errors.get(k, {})),
-             float(np.mean(list(errors[k].values()))) if errors.get(k) else math.nan)
+             float(np.mean(list(errors[k].values()))) if errors.get(k) else math.nan,
+             top1.get(k, 0))
             for k, n in sorted(seen.items())]
 
 
@@ -174,10 +194,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         loops = result.report['loops']
         print('  revisits by kind  (found = a published loop with its pose within '
               f'{loops["max_error_m"]:g} m / {loops["max_error_deg"]:g} deg)')
-        for kind, total, found, yaw_err in table:
+        for kind, total, found, yaw_err, top1 in table:
             yaw = 'n/a' if math.isnan(yaw_err) else f'{yaw_err:.2f} deg'
             print(f'    {kind:<8} {found:4d} of {total:4d} found ({found / total:.2f}), '
-                  f'yaw error mean {yaw}')
+                  f'yaw error mean {yaw}; descriptor top-1 within {args.radius:g} m '
+                  f'{top1} ({top1 / total:.2f})')
     print(f'  simulated bag     {bag}')
     return 0
 

@@ -10,13 +10,16 @@ Definitions (keyframes numbered 0..K-1 in replay order; ``ref`` their reference 
 * Recall: among queries with a true loop (an earlier keyframe outside the exclusion window
   within the radius; :func:`solid_ros.tools.evaluation.ground_truth`), the fraction with at
   least one correct published loop.
-* Sweep (with verification): each query keeps its verified candidates whose structure overlap
-  is at least ``t``; the one with the largest overlap stands for what would be published.
-  The recommended ``verify_min_overlap`` is the smallest ``t`` (keeping a loop) whose
-  precision reaches the target. It is estimated from the recorded scores: a stricter value
-  could have let a later candidate of the same query be verified, which the recording does
-  not show, and values below the configured one cannot be estimated (candidates refused for
-  low overlap were never put through the later tests).
+* Sweep (with verification): at a ``verify_min_overlap`` of ``t`` the published loops are
+  taken to be the attempts that reached the overlap test and passed every other test (the
+  published, verified ones) whose recorded structure overlap is at least ``t``; precision and
+  recall are computed over them as above. At the configured value this is exactly what was
+  published. The recommended ``verify_min_overlap`` is the smallest ``t`` (keeping a loop)
+  whose precision reaches the target. It is estimated from the recorded scores: a stricter
+  value could have let a later candidate of the same query be tried and verified, or (with
+  ``min_loop_gap``) a later query publish, which the recording does not show; and values
+  below the configured one cannot be estimated (candidates refused for low overlap were never
+  put through the later tests).
 """
 
 from __future__ import annotations
@@ -127,29 +130,28 @@ def overlap_sweep(records: Sequence[LoopRecord], positives: npt.ArrayLike, curre
     """Precision and recall as ``verify_min_overlap`` rises from ``current``.
 
     Returns:
-        ``rows`` (threshold, precision, recall, tp, fp) and ``recommended`` (the smallest
-        threshold reaching ``target_precision``; None when none does).
+        ``rows`` (threshold, precision, recall, tp, fp), ``recommended`` (the smallest
+        threshold reaching ``target_precision``; None when none does) and ``recall`` (the
+        recall there).
     """
     pos = np.asarray(positives, dtype=bool)
     n_pos = int(pos.sum())
-    verified = [r for r in records if r.verified and math.isfinite(r.overlap)]
+    passed = [r for r in records if r.published and r.verified and math.isfinite(r.overlap)]
     levels = sorted({round(current, 4)} | {math.floor(r.overlap * 100) / 100 + 0.01
-                                           for r in verified if r.overlap >= current})
+                                           for r in passed if r.overlap >= current})
     rows = []
     recommended = None
+    recall: float | None = None
     for t in levels:
-        best: dict[int, LoopRecord] = {}
-        for r in verified:
-            if r.overlap >= t and (r.query not in best or r.overlap > best[r.query].overlap):
-                best[r.query] = r
-        tp = sum(r.correct(max_error_m, max_error_deg) for r in best.values())
-        fp = len(best) - tp
-        found = {q for q, r in best.items()
-                 if r.correct(max_error_m, max_error_deg) and 0 <= q < len(pos) and pos[q]}
+        kept = [r for r in passed if r.overlap >= t]
+        good = [r for r in kept if r.correct(max_error_m, max_error_deg)]
+        tp, fp = len(good), len(kept) - len(good)
+        found = {r.query for r in good if 0 <= r.query < len(pos) and pos[r.query]}
         precision = tp / (tp + fp) if tp + fp else 1.0
         rows.append({'threshold': round(t, 4), 'precision': precision,
                      'recall': len(found) / n_pos if n_pos else 0.0, 'tp': tp, 'fp': fp})
         if recommended is None and precision >= target_precision and tp > 0:
             recommended = round(t, 4)
+            recall = rows[-1]['recall']
     return {'parameter': 'verify_min_overlap', 'target_precision': target_precision,
-            'rows': rows, 'recommended': recommended}
+            'rows': rows, 'recommended': recommended, 'recall': recall}

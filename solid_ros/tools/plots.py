@@ -15,7 +15,7 @@ from solid_ros.tools.loops import LoopRecord
 __all__ = ['PLOT_FILES', 'write_plots']
 
 PLOT_FILES = ('pr_curve.png', 'trajectory.png', 'distance_hist.png', 'yaw_error_hist.png',
-              'verification.png')
+              'verification.png', 'pose_error_hist.png')
 _TRUE, _FALSE, _GREY = '#1b9e4b', '#d7301f', '#9a9a9a'
 
 
@@ -99,35 +99,56 @@ def _trajectory(plt: Any, ev: Evaluation, pos: npt.NDArray[np.float64],
     plt.close(fig)
 
 
-def _verification(plt: Any, records: Sequence[LoopRecord] | None,
-                  max_error: tuple[float, float], path: Path) -> None:
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.5), dpi=110)
+def _verification(plt: Any, records: Sequence[LoopRecord] | None, min_overlap: float | None,
+                  path: Path) -> None:
+    """Structure overlap of the candidates that reached fine registration."""
+    fig, ax = plt.subplots(figsize=(6.5, 4.5), dpi=110)
     recs = list(records or [])
     ov_v = np.array([r.overlap for r in recs if r.verified and np.isfinite(r.overlap)])
     ov_r = np.array([r.overlap for r in recs if not r.verified and np.isfinite(r.overlap)])
+    early = sum(1 for r in recs if not r.verified and not np.isfinite(r.overlap))
     bins = np.linspace(0.0, 1.0, 41)
-    a1.hist(ov_v, bins=bins, color=_TRUE, alpha=0.7, label=f'verified ({ov_v.size})')
-    a1.hist(ov_r, bins=bins, color=_FALSE, alpha=0.5,
-            label=f'rejected after registration ({ov_r.size})')
-    a1.set(xlabel='structure overlap', ylabel='candidates',
+    ax.hist(ov_v, bins=bins, color=_TRUE, alpha=0.7, label=f'verified ({ov_v.size})')
+    ax.hist(ov_r, bins=bins, color=_FALSE, alpha=0.5,
+            label=f'rejected after fine registration ({ov_r.size})')
+    if min_overlap is not None:
+        ax.axvline(min_overlap, color='black', ls='--', lw=1.2,
+                   label=f'verify_min_overlap {min_overlap:g}')
+    ax.plot([], [], ' ', label=f'rejected before it, not shown ({early})')
+    ax.set(xlabel='structure overlap', ylabel='candidates',
            title='Verified vs rejected candidates')
-    a1.legend(fontsize=8)
-    a1.grid(alpha=0.3)
-    pub = [r for r in recs if r.published and np.isfinite(r.trans_err_m)]
-    te = np.array([r.trans_err_m for r in pub])
-    re_ = np.array([r.rot_err_deg for r in pub])
-    if te.size:
-        ok = te < max_error[0]
-        a2.scatter(te[ok], re_[ok], s=12, color=_TRUE, label=f'correct ({int(ok.sum())})')
-        a2.scatter(te[~ok], re_[~ok], s=12, color=_FALSE, label=f'false ({int((~ok).sum())})')
-        a2.axvline(max_error[0], color='black', ls='--', lw=1)
-        a2.axhline(max_error[1], color='black', ls='--', lw=1)
-        a2.legend(fontsize=8)
-    else:
-        a2.text(0.5, 0.5, 'no published loop', ha='center', va='center', transform=a2.transAxes)
-    a2.set(xlabel='translation error (m)', ylabel='rotation error (deg)',
-           title='Published loops against the reference pose')
-    a2.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _pose_errors(plt: Any, records: Sequence[LoopRecord] | None,
+                 max_error: tuple[float, float], path: Path) -> None:
+    """Translation and rotation error of the published loops against the reference pose."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), dpi=110)
+    pub = [r for r in records or [] if r.published and np.isfinite(r.trans_err_m)]
+    ok = np.array([r.correct(*max_error) for r in pub], dtype=bool)
+    errors = (np.array([r.trans_err_m for r in pub]), np.array([r.rot_err_deg for r in pub]))
+    for ax, err, limit, unit in zip(axes, errors, max_error, ('m', 'deg')):
+        if err.size:
+            # False loops can be off by tens of metres: larger errors go into the last bin.
+            top = max(2.0 * limit, min(float(err.max()), 10.0 * limit))
+            bins = np.linspace(0.0, top * 1.0001, 41)
+            clipped = np.minimum(err, top)
+            ax.hist([clipped[ok], clipped[~ok]], bins=bins, stacked=True,
+                    color=[_TRUE, _FALSE], alpha=0.8,
+                    label=[f'correct ({int(ok.sum())})', f'false ({int((~ok).sum())})'])
+            ax.axvline(limit, color='black', ls='--', lw=1.2, label=f'limit {limit:g} {unit}')
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, 'no published loop with a reference', ha='center',
+                    va='center', transform=ax.transAxes)
+        what = 'translation' if unit == 'm' else 'rotation'
+        ax.set(xlabel=f'{what} error ({unit}; the last bin holds larger ones)',
+               ylabel='published loops', title=f'Published loops: {what} error')
+        ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -179,7 +200,8 @@ def _yaw(plt: Any, ev: Evaluation, path: Path) -> None:
 def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
                 match: npt.ArrayLike, threshold: float,
                 records: Sequence[LoopRecord] | None = None,
-                max_error: tuple[float, float] = (1.0, 3.0)) -> list[Path]:
+                max_error: tuple[float, float] = (1.0, 3.0),
+                min_overlap: float | None = None) -> list[Path]:
     """Write the evaluation plots and return their paths.
 
     Args:
@@ -191,6 +213,8 @@ def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
         records: scored candidates (published loops, rejected ones); None draws the
             accepted best matches instead.
         max_error: translation (m) and rotation (deg) limits of a correct loop.
+        min_overlap: the configured ``verify_min_overlap`` (marked; None without
+            verification).
     """
     plt = _pyplot()
     out = Path(out_dir)
@@ -201,5 +225,6 @@ def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
     _trajectory(plt, ev, pos, m, records, max_error, paths[1])
     _distances(plt, ev, threshold, paths[2])
     _yaw(plt, ev, paths[3])
-    _verification(plt, records, max_error, paths[4])
+    _verification(plt, records, min_overlap, paths[4])
+    _pose_errors(plt, records, max_error, paths[5])
     return paths

@@ -419,7 +419,9 @@ def _write_outputs(out: Path, r: ReplayResult, plots: bool) -> list[Path]:
             loops = r.report['loops']
             files += write_plots(out, r.evaluation, r.reference[:, :3, 3], _match_rows(r),
                                  threshold=r.config.distance_threshold, records=r.records,
-                                 max_error=(loops['max_error_m'], loops['max_error_deg']))
+                                 max_error=(loops['max_error_m'], loops['max_error_deg']),
+                                 min_overlap=r.config.verify_min_overlap if r.config.verify
+                                 else None)
         r.report['files'] = [str(f) for f in files]
         files[1].write_text(json.dumps(_jsonable(r.report), indent=2) + '\n', encoding='utf-8')
     except OSError as err:
@@ -658,6 +660,11 @@ def summary_lines(r: ReplayResult) -> list[str]:
         f'  descriptor        Recall@1 {_fmt(m["recall_at_1"])}, F1max {_fmt(m["f1_max"])}, '
         f'ROC AUC {_fmt(m["roc_auc"])}',
     ]
+    if not cfg.verify:  # the pose is only a yaw: also score the places, as the back end will
+        acc = m['accepted']
+        lines.append(f'  by place          {acc["true"]} true, {acc["false"]} false best matches '
+                     f'within {m["radius_m"]} m: precision {_fmt(acc["precision"])}, recall '
+                     f'{_fmt(acc["recall"])} (descriptor only: the pose carries no translation)')
     sweep = rep['loop_sweep']
     if sweep is not None:
         rows = sweep.get('rows', [])
@@ -670,9 +677,11 @@ def summary_lines(r: ReplayResult) -> list[str]:
                              f'{row["tp"]:<4} {row["fp"]}')
         target = sweep['target_precision']
         if sweep['recommended'] is not None:
+            basis = ('of published loops by pose' if cfg.verify
+                     else f'of best matches within {m["radius_m"]} m')
             lines.append('  paste into YAML:')
             lines.append(f'    {sweep["parameter"]}: {sweep["recommended"]}   # precision >= '
-                         f'{target} on this data')
+                         f'{target} {basis} on this data, recall {_fmt(sweep["recall"])}')
         else:
             lines.append(f'  no {sweep["parameter"]} reaches precision {target} on this data')
     if r.files:

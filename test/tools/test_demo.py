@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,11 +24,12 @@ def test_demo_runs_end_to_end_and_reuses_its_cache(tmp_path: Path,
     # The issue's bars: no false loop, and same-direction revisits found with a correct pose.
     assert report['loops']['published'] > 50 and report['loops']['precision'] == 1.0
     for png in ('pr_curve.png', 'trajectory.png', 'distance_hist.png', 'yaw_error_hist.png',
-                'verification.png'):
+                'verification.png', 'pose_error_hist.png'):
         assert (out / png).stat().st_size > 1000
     recall, yaw_error = _same_direction(text)
     assert recall >= 0.8 and yaw_error < 1.0
     assert 'reverse' in text  # reported whether found or not
+    assert 'descriptor top-1 within 5 m' in text
     bags = list(cache.rglob('metadata.yaml'))
     assert len(bags) == 1
     mtime = bags[0].stat().st_mtime_ns
@@ -58,3 +60,17 @@ def test_demo_with_a_user_bag_is_solid_replay(tmp_path: Path,
     assert (tmp_path / 'out' / 'candidates.csv').is_file()
     assert demo.main([str(tmp_path / 'missing')]) == 1
     assert 'error' in capsys.readouterr().err
+
+
+def test_keyframes_pair_with_their_scans_by_stamp(tmp_path: Path) -> None:
+    """Gated replays skip scans: labels follow the keyframe's stamp, not its index."""
+    times = tmp_path / 'times.txt'
+    # As the simulator writes them: decimal seconds, float-rounded below the microsecond.
+    times.write_text('1700000000.000000000\n1700000000.211311579\n1700000000.418871880\n'
+                     '1700000000.630000000\n')
+    kept = SimpleNamespace(stamps_ns=np.array([1_700_000_000_000_000_000,
+                                               1_700_000_000_418_871_788,
+                                               1_700_000_000_630_000_100,
+                                               1_700_000_099_000_000_000]))
+    got = demo._keyframe_scans(kept, times)  # type: ignore[arg-type]
+    assert got.tolist() == [0, 2, 3, -1]

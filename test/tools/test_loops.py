@@ -55,3 +55,47 @@ def test_sweep_recommends_the_least_overlap_reaching_the_target() -> None:
     assert (rows[0.41]['precision'], rows[0.41]['recall']) == (1.0, 0.2)
     assert overlap_sweep([_rec(1, 0, te=3.0)], positives, 0.35,
                          target_precision=1.0)['recommended'] is None
+
+
+def test_sweep_at_the_configured_overlap_is_what_was_published() -> None:
+    positives = np.zeros(8, bool)
+    positives[[2, 3, 4, 5]] = True
+    # Query 3 published two places (max_candidates 2): one right, one wrong.
+    records = [_rec(2, 0, ov=0.5), _rec(3, 0, ov=0.6), _rec(3, 1, ov=0.45, te=2.0),
+               _rec(4, 1, ov=0.5, re=5.0), _rec(6, 0, ov=0.9),
+               _rec(5, 0, published=False, verified=False, ov=0.3)]
+    score = score_loops(records, positives)
+    sweep = overlap_sweep(records, positives, 0.35)
+    first = sweep['rows'][0]
+    assert first['threshold'] == 0.35
+    assert (first['tp'], first['fp']) == (score['correct'], score['false']) == (3, 2)
+    assert first['precision'] == score['precision'] and first['recall'] == score['recall']
+    # 0.51 drops both false loops (0.45 and 0.5) and query 2's right one.
+    assert sweep['recommended'] == 0.51
+    rows = {r['threshold']: r for r in sweep['rows']}
+    assert (rows[0.51]['tp'], rows[0.51]['fp'], rows[0.51]['recall']) == (2, 0, 0.25)
+    # A lower target accepts the configured value.
+    assert overlap_sweep(records, positives, 0.35, target_precision=0.6)['recommended'] == 0.35
+
+
+def test_sweep_ignores_attempts_that_failed_another_test() -> None:
+    positives = np.ones(4, bool)
+    # A large overlap that failed a later test (e.g. conflict) never counts.
+    failed = LoopRecord(1, 0, 0, False, False, 'conflict', 0.95, 0.05, 5.0, 20.0, 9.0)
+    sweep = overlap_sweep([failed, _rec(2, 0, ov=0.6)], positives, 0.35)
+    assert [(r['threshold'], r['tp'], r['fp']) for r in sweep['rows']] == [(0.35, 1, 0),
+                                                                          (0.61, 0, 0)]
+    assert sweep['recommended'] == 0.35
+
+
+def test_pose_error_follows_the_published_convention() -> None:
+    # P_match, P_query world poses; T_ref = inv(P_match) @ P_query maps query points into
+    # the match frame: a point seen by the query lands where the match saw it.
+    p_match, p_query = _T(10.0, 30.0), _T(12.0, 75.0)
+    T_ref = np.linalg.solve(p_match, p_query)
+    point_q = np.array([3.0, -1.0, 0.5, 1.0])
+    world = p_query @ point_q
+    assert np.allclose(T_ref @ point_q, np.linalg.solve(p_match, world))
+    assert pose_error(T_ref, T_ref) == pytest.approx((0.0, 0.0), abs=1e-6)
+    te, re = pose_error(np.linalg.inv(T_ref), T_ref)  # the inverse convention is caught
+    assert te > 1.0 and re > 3.0

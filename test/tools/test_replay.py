@@ -14,10 +14,11 @@ from project_paths import CONFIG_DIR  # noqa: E402
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import LoopDetector
+from solid_ros.core.verification import REASONS
 from solid_ros.formats.bags import POINTCLOUD2, BagWriter, write_cloud_bag
 from solid_ros.formats.pointcloud2 import CloudLayout, encode_points
 from solid_ros.tools.plots import PLOT_FILES
-from solid_ros.tools.replay import CSV_COLUMNS, build_parser, main, replay
+from solid_ros.tools.replay import CSV_COLUMNS, build_parser, main, replay, summary_lines
 
 # 10 places along a line, then places 0..5 again; 3 scans may not match their neighbours.
 ROUTE = list(range(10)) + list(range(6))
@@ -495,3 +496,135 @@ def test_hku1_avia_preset_beats_authors_defaults(shared_data: Path) -> None:
     assert plain.metrics is not None and mine.metrics is not None
     assert mine.metrics['f1_max'] > plain.metrics['f1_max']
     assert mine.metrics['recall_at_1'] > plain.metrics['recall_at_1']
+
+
+# -- verified loops: pose, scores and pose errors in every output ------------------------------
+
+# Scans 0..9 of the simulated drive, then 166..175: the same street driven again in another
+# lane (the demo's 'same' revisits of 0..9), so every revisit has a real relative pose.
+SIM_SCANS = list(range(10)) + list(range(166, 176))
+SIM_CFG = SolidConfig.from_yaml(CONFIG_DIR / 'hdl64.yaml').replace(exclude_recent_frames=5)
+
+
+@pytest.fixture(scope='module')
+def sim_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    from solid_ros.sim.bagwriter import DEMO_DEFAULTS
+    from solid_ros.sim.drive import Drive, DriveConfig
+
+    drive = Drive(DriveConfig(**DEMO_DEFAULTS))
+    items = []
+    for i, k in enumerate(SIM_SCANS):
+        scan = drive.scan(k)
+        items.append((scan.points.copy(), 10**18 + i * 200_000_000, scan.pose))
+    return write_cloud_bag(tmp_path_factory.mktemp('sim') / 'bag', items, 'mcap')
+
+
+def test_published_loops_carry_a_correct_relative_pose(tmp_path: Path, sim_bag: Path) -> None:
+    out = tmp_path / 'out'
+    result = replay(sim_bag, SIM_CFG, out_dir=out, progress='quiet')
+    assert result.reference is not None
+    loops = result.report['loops']
+    assert loops['published'] >= 8 and loops['precision'] == 1.0, loops
+    assert loops['recall'] >= 0.8 and loops['trans_err_m']['median'] < 0.1
+    with (out / 'candidates.csv').open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == CSV_COLUMNS
+    published = [r for r in rows if r['accepted'] == '1']
+    assert len(published) == len(result.candidates) == loops['published']
+    ref = result.reference
+    offsets = []
+    for r, c in zip(published, result.candidates):
+        assert (int(r['query_index']), int(r['match_index'])) == (c.query_index, c.match_index)
+        assert r['verified'] == '1' and r['reason'] == 'verified' and r['pose_correct'] == '1'
+        # The CSV pose is the published one, scored against inv(P_match) @ P_query.
+        pose = [float(r[k]) for k in ('tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw')]
+        assert pose == pytest.approx(c.pose, abs=1e-6)
+        T_ref = np.linalg.solve(ref[c.match_index], ref[c.query_index])
+        d = np.linalg.solve(T_ref, c.matrix())
+        assert float(r['trans_err_m']) == pytest.approx(np.linalg.norm(d[:3, 3]), abs=1e-4)
+        assert float(r['trans_err_m']) < 0.1 and float(r['rot_err_deg']) < 0.5
+        offsets.append(float(np.linalg.norm(T_ref[:3, 3])))
+        assert 0.0 < float(r['fitness']) <= 1.0 and float(r['rmse']) < 0.1
+        assert 0.0 < float(r['overlap']) <= 1.0
+        cov = np.array([float(r[f'cov_{i}']) for i in range(36)]).reshape(6, 6)
+        assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0.0)
+    # Another lane: the convention is exercised by real offsets, not identity poses.
+    assert max(offsets) > 1.0
+    # Every attempt has a row with its reason; unpublished rows are never marked accepted.
+    reasons = {r['reason'] for r in rows}
+    assert reasons <= {'verified', 'best', *REASONS} and 'verified' in reasons
+    attempts = sum(len(a) for a in result.attempts)
+    best_only = [r for r in rows if r['reason'] == 'best']
+    assert len(rows) == attempts + len(best_only)
+    assert all(r['accepted'] == '0' and r['verified'] == '0' and r['best'] == '1'
+               for r in best_only)
+    # report.json: memory of the keyframe clouds, per-stage times, reasons, the sweep.
+    report = json.loads((out / 'report.json').read_text())
+    clouds = report['keyframe_clouds']
+    assert clouds['kept'] == result.keyframes and clouds['mb'] > 0 and clouds['dropped'] == 0
+    for stage in ('describe', 'search', 'verify'):
+        assert report['timings'][f'{stage}_ms']['p50'] > 0.0
+    assert report['verification']['reasons']['verified'] == loops['published']
+    assert report['loops']['reasons'] == dict(sorted(
+        {k: sum(1 for r in rows if r['reason'] == k) for k in reasons - {'best'}}.items()))
+    sweep = report['loop_sweep']
+    assert sweep['parameter'] == 'verify_min_overlap' and sweep['target_precision'] == 1.0
+    assert sweep['rows'][0]['threshold'] == SIM_CFG.verify_min_overlap
+    assert sweep['rows'][0]['tp'] == loops['correct'] and sweep['recommended'] is not None
+    for name in PLOT_FILES:
+        assert (out / name).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+
+
+def test_pose_limits_and_target_precision_are_options(tmp_path: Path, sim_bag: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    # Limits tighter than any registration: every published loop counts as false.
+    preset = ['--params', str(CONFIG_DIR / 'hdl64.yaml'), '--set', 'exclude_recent_frames=5']
+    assert main([str(sim_bag), *preset, '--max-pose-error-m', '0.0000001',
+                 '--max-pose-error-deg', '0.00001', '--out', str(tmp_path / 'o'), '--no-plots',
+                 '-q']) == 0
+    report = json.loads((tmp_path / 'o' / 'report.json').read_text())
+    loops = report['loops']
+    assert loops['published'] > 0 and loops['correct'] == 0 and loops['precision'] == 0.0
+    assert (loops['max_error_m'], loops['max_error_deg']) == (1e-7, 1e-5)
+    assert report['loop_sweep']['recommended'] is None
+    # With the default limits a lower target is met at the configured value, and printed.
+    assert main([str(sim_bag), *preset, '--target-precision', '0.5', '--progress',
+                 'lines']) == 0
+    out = capsys.readouterr().out
+    assert 'verify_min_overlap: 0.35   # precision >= 0.5 of published loops by pose' in out
+
+
+def test_descriptor_only_sweeps_the_distance_threshold(tmp_path: Path, bags: dict[str, Path],
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = TEST_CFG.replace(verify=False)
+    result = replay(bags['mcap'], cfg, out_dir=tmp_path, progress='quiet', plots=False)
+    assert [(c.query_index, c.match_index) for c in result.candidates] == \
+        [(10 + k, k) for k in range(6)]
+    assert all(c.reason == 'descriptor' and not c.verified for c in result.candidates)
+    sweep = result.report['loop_sweep']
+    assert sweep['parameter'] == 'distance_threshold' and sweep['recommended'] is not None
+    assert sweep['recall'] == 1.0
+    with (tmp_path / 'candidates.csv').open() as fh:
+        rows = [r for r in csv.DictReader(fh) if r['accepted'] == '1']
+    # The pose is the descriptor's yaw only; same place, so it is also pose-correct here.
+    assert all(r['reason'] == 'descriptor' and r['verified'] == '0' and r['tx'] == '0.000000'
+               and r['cov_0'] == '' for r in rows)
+    assert result.report['loops']['precision'] == 1.0
+    text = '\n'.join(summary_lines(result))
+    assert 'by place' in text and 'distance_threshold: ' in text
+    assert 'of best matches within 5.0 m' in text
+
+
+def test_bad_replay_options_exit_2(capsys: pytest.CaptureFixture[str],
+                                   bags: dict[str, Path]) -> None:
+    b = str(bags['mcap'])
+    for argv in ([b, '--target-precision', '0'], [b, '--target-precision', '1.5'],
+                 [b, '--target-precision', 'nan'], [b, '--max-pose-error-m', '-1'],
+                 [b, '--max-pose-error-m', 'inf'], [b, '--max-pose-error-deg', '0'],
+                 [b, '--max-pose-error-deg', '200']):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith('solid_replay: error: '), argv
