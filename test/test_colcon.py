@@ -117,7 +117,7 @@ def test_installed_node_starts_with_each_yaml(installed: Path, domain: int,
         while not diags:
             assert time.monotonic() < deadline, 'no diagnostics from solid_node'
             executor.spin_once(timeout_sec=0.1)
-        assert diags[0].status[0].name.startswith('solid_node')
+        assert diags[0].status[0].name.startswith('/solid_node')
     finally:
         code, err = _stop(proc)
         executor.shutdown()

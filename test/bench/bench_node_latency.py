@@ -103,7 +103,7 @@ def main() -> int:
 
     def on_diag(msg: DiagnosticArray) -> None:
         for s in msg.status:
-            if s.name.startswith('solid_node'):
+            if s.name.startswith('/solid_node'):
                 diag.update({kv.key: kv.value for kv in s.values})
 
     node.create_subscription(Float64MultiArray, '/solid_node/loop_candidates', on_cands, 100)

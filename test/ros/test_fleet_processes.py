@@ -32,7 +32,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy_msgs import make_cloud  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Float64MultiArray, UInt8MultiArray  # noqa: E402
-from test_peers import _check, _scan  # noqa: E402
+from test_peer_link import _check, _scan  # noqa: E402
 
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
 
