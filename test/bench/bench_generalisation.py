@@ -1,0 +1,286 @@
+"""Do the shipped presets' acceptance tests transfer? Sensors x routes x scenes, simulated.
+
+For each combination of simulated sensor (``hdl64``, ``ouster_like``, ``vlp16_like``,
+``avia_like``), route (``revisits``, ``no_revisit``) and scene (``varied``, ``lookalike``),
+plus a few extra cases (facade detail, a tilted mount with matching ``mount_*`` parameters,
+the 90-degree clip with ``spinning_fov90.yaml``), the shipped preset of that sensor runs with
+verification on through :class:`LoopDetector`, fed the simulator's scans and reference poses
+(as odometry, for keyframe gating) directly, without writing bags. The drives are the demo's:
+50 m blocks, a scan every 2 m, and 512 points per ring for ``hdl64`` and ``ouster_like``
+(``solid_ros.sim.DEMO_SENSORS``); ``ouster_like`` and ``vlp16_like`` replay ``hdl64.yaml``
+with their own vertical FOV, as the demo does.
+
+Printed per case: keyframes, queries with a true loop (an earlier keyframe outside the
+exclusion window within 5 m), published loops, correct and false ones (correct: translation
+error < 1 m and rotation error < 3 deg against ``inv(P_match) @ P_query``), precision, recall
+(fraction of the queries with a true loop that got a correct published loop), median pose
+errors of the correct loops, and the verification verdicts (``detector.reasons``). The goal
+(issue 11): precision 1.0 everywhere, no loop at all on ``no_revisit``, recall >= 0.5 on
+``revisits``.
+
+Usage: ``python test/bench/bench_generalisation.py [--sensors hdl64,avia_like]
+[--routes revisits] [--scenes lookalike] [--extras none|all|NAME,...] [--seed 0]
+[--scans N] [--jobs 1] [--dump DIR] [--json FILE]``. The full matrix (16 + 5 cases, about
+14,000 scans) takes roughly 25 minutes on one core: simulating a 64-beam scan costs about
+20 ms, describing and verifying a keyframe 20-60 ms. ``--dump`` writes every candidate looked
+at, with its test scores and pose error, one CSV per case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ.setdefault(_var, '1')
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from solid_ros.core.config import SolidConfig  # noqa: E402
+from solid_ros.core.detector import LoopCandidate, LoopDetector  # noqa: E402
+from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, simulate  # noqa: E402
+from solid_ros.tools.evaluation import ground_truth  # noqa: E402
+from solid_ros.tools.loops import LoopRecord, pose_error, score_loops  # noqa: E402
+
+SENSORS = ('hdl64', 'ouster_like', 'vlp16_like', 'avia_like')
+ROUTES = ('revisits', 'no_revisit')
+SCENES = ('varied', 'lookalike')
+PRESET = {'hdl64': 'hdl64.yaml', 'ouster_like': 'hdl64.yaml', 'vlp16_like': 'hdl64.yaml',
+          'avia_like': 'avia.yaml'}
+OWN_VERTICAL_FOV = ('ouster_like', 'vlp16_like')
+RADIUS = 5.0
+MAX_ERROR_M = 1.0
+MAX_ERROR_DEG = 3.0
+
+
+@dataclass(frozen=True)
+class Case:
+    """One simulated drive and the preset it is replayed with."""
+
+    name: str
+    sensor: str
+    route: str
+    scene: str
+    preset: str
+    drive: dict[str, Any] = field(default_factory=dict)
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+
+def matrix_cases(sensors: Sequence[str], routes: Sequence[str],
+                 scenes: Sequence[str]) -> list[Case]:
+    """The sensor x route x scene cases with each sensor's shipped preset."""
+    return [Case(f'{s}/{r}/{c}', s, r, c, PRESET[s]) for s in sensors for r in routes
+            for c in scenes]
+
+
+def extra_cases() -> dict[str, Case]:
+    """Cases beyond the matrix, by name."""
+    tilt = {'mount_roll_deg': 3.0, 'mount_pitch_deg': 5.0}
+    avia_tilt = {'mount_roll_deg': -4.0, 'mount_pitch_deg': 10.0}
+    return {
+        'facade': Case('hdl64/revisits/varied+facade', 'hdl64', 'revisits', 'varied',
+                       'hdl64.yaml', {'facade_detail': True}),
+        'tilt': Case('ouster_like/revisits/varied+tilt(r3,p5)', 'ouster_like', 'revisits',
+                     'varied', 'hdl64.yaml', tilt, tilt),
+        'avia_tilt': Case('avia_like/revisits/lookalike+tilt(r-4,p10)', 'avia_like',
+                          'revisits', 'lookalike', 'avia.yaml', avia_tilt, avia_tilt),
+        'fov90': Case('hdl64/revisits/varied@fov90', 'hdl64', 'revisits', 'varied',
+                      'spinning_fov90.yaml'),
+        'fov90_none': Case('hdl64/no_revisit/lookalike@fov90', 'hdl64', 'no_revisit',
+                           'lookalike', 'spinning_fov90.yaml'),
+    }
+
+
+def case_config(case: Case) -> SolidConfig:
+    """The shipped preset with the case's overrides (and the sensor's own vertical FOV)."""
+    over = dict(case.overrides)
+    if case.sensor in OWN_VERTICAL_FOV:
+        model = DEMO_SENSORS[case.sensor]
+        over.update(fov_up_deg=model.fov_up_deg, fov_down_deg=model.fov_down_deg)
+    return SolidConfig.from_yaml(ROOT / 'config' / case.preset).replace(**over)
+
+
+@dataclass
+class Outcome:
+    """What one case gave."""
+
+    case: Case
+    keyframes: int
+    scores: dict[str, Any]
+    reasons: dict[str, int]
+    seconds: float
+    rows: list[dict[str, Any]]
+
+
+def run_case(case: Case, seed: int, scans: int | None) -> Outcome:
+    """Replay one simulated drive through the detector and score its published loops."""
+    cfg = case_config(case)
+    det = LoopDetector(cfg)
+    poses: list[np.ndarray] = []
+    attempts: list[list[LoopCandidate]] = []
+    published: set[int] = set()
+    t0 = time.perf_counter()
+    drive = {'block': DEMO_DEFAULTS['block'], 'spacing': DEMO_DEFAULTS['spacing'],
+             'route': case.route, 'scene': case.scene, **case.drive}
+    for scan in simulate(seed=seed, sensor=DEMO_SENSORS[case.sensor], num_scans=scans,
+                         **drive):
+        loops = det.process(scan.points, scan.stamp_ns, scan.pose)
+        if det.last_was_keyframe:
+            poses.append(scan.pose)
+            attempts.append(list(det.last_attempts))
+            published.update(id(c) for c in loops)
+    seconds = time.perf_counter() - t0
+    ref = np.asarray(poses)
+    truth = ground_truth(ref[:, :3, 3], radius=RADIUS, exclude_frames=cfg.exclude_recent_frames)
+    records, rows = [], []
+    for tried in attempts:
+        for c in tried:
+            q, m = ref[c.query_index], ref[c.match_index]
+            te, re_ = pose_error(c.matrix(), np.linalg.solve(m, q))
+            gd = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+            rec = LoopRecord(c.query_index, c.match_index, c.match_session, id(c) in published,
+                             c.verified, c.reason, c.overlap, c.distance, te, re_, gd)
+            records.append(rec)
+            rows.append({'query': c.query_index, 'match': c.match_index,
+                         'published': int(rec.published), 'reason': c.reason,
+                         'correct': int(rec.correct(MAX_ERROR_M, MAX_ERROR_DEG)),
+                         'true_place': int(gd <= RADIUS), 'gt_distance_m': gd,
+                         'trans_err_m': te, 'rot_err_deg': re_, 'distance': c.distance,
+                         'fitness': c.fitness, 'rmse': c.rmse, 'overlap': c.overlap,
+                         'conflict': c.conflict, 'constraint': c.constraint,
+                         'spread': c.spread})
+    scores = score_loops(records, truth.has_loop, max_error_m=MAX_ERROR_M,
+                         max_error_deg=MAX_ERROR_DEG)
+    return Outcome(case, len(poses), scores, dict(det.reasons), seconds, rows)
+
+
+def _fmt(value: float | None, spec: str) -> str:
+    return '-' if value is None or (isinstance(value, float) and math.isnan(value)) \
+        else format(value, spec)
+
+
+HEADER = (f'{"case":44s} {"kf":>5s} {"pos":>5s} {"pub":>4s} {"ok":>4s} {"false":>5s} '
+          f'{"prec":>5s} {"recall":>6s} {"t_med":>6s} {"r_med":>6s} {"s":>5s}  verdicts')
+
+
+def row_line(o: Outcome) -> str:
+    """One table line."""
+    s = o.scores
+    verdicts = ' '.join(f'{k}={v}' for k, v in sorted(o.reasons.items(), key=lambda kv: -kv[1]))
+    return (f'{o.case.name:44s} {o.keyframes:5d} {s["queries_with_true_loop"]:5d} '
+            f'{s["published"]:4d} {s["correct"]:4d} {s["false"]:5d} '
+            f'{_fmt(s["precision"], ".3f"):>5s} {_fmt(s["recall"], ".3f"):>6s} '
+            f'{_fmt(s["trans_err_m"]["median"], ".3f"):>6s} '
+            f'{_fmt(s["rot_err_deg"]["median"], ".2f"):>6s} {o.seconds:5.0f}  {verdicts}')
+
+
+def verdict(o: Outcome) -> list[str]:
+    """What falls short of the goal in this case (empty: nothing)."""
+    s, out = o.scores, []
+    if s['false']:
+        out.append(f'{s["false"]} false loop(s)')
+    if o.case.route == 'no_revisit' and s['published']:
+        out.append(f'{s["published"]} loop(s) on a drive without a revisit')
+    if o.case.route == 'revisits' and (s['recall'] or 0.0) < 0.5:
+        out.append(f'recall {_fmt(s["recall"], ".3f")} < 0.5')
+    return out
+
+
+def _write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open('w', newline='') as fh:
+        if not rows:
+            return
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _job(args: tuple[Case, int, int | None]) -> Outcome:
+    return run_case(*args)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the selected cases and print the table; exit 1 when a case misses the goal."""
+    p = argparse.ArgumentParser(description=(__doc__ or '').splitlines()[0])
+    p.add_argument('--sensors', default=','.join(SENSORS), help='comma-separated sensors')
+    p.add_argument('--routes', default=','.join(ROUTES), help='comma-separated routes')
+    p.add_argument('--scenes', default=','.join(SCENES), help='comma-separated scenes')
+    p.add_argument('--extras', default='all',
+                   help=f'extra cases: all, none or some of {",".join(extra_cases())}')
+    p.add_argument('--seed', type=int, default=0, help='seed of the simulated world')
+    p.add_argument('--scans', type=int, default=None, help='at most this many scans per drive')
+    p.add_argument('--jobs', type=int, default=1, help='cases run in parallel processes')
+    p.add_argument('--dump', type=Path, default=None,
+                   help='write every candidate with its scores, one CSV per case, here')
+    p.add_argument('--json', type=Path, default=None, help='write the summary as JSON')
+    args = p.parse_args(argv)
+
+    def pick(text: str, allowed: Sequence[str], what: str) -> list[str]:
+        names = [t for t in text.split(',') if t]
+        bad = [n for n in names if n not in allowed]
+        if bad:
+            p.error(f'unknown {what}: {", ".join(bad)} (allowed: {", ".join(allowed)})')
+        return names
+
+    extras = extra_cases()
+    chosen = ([] if args.extras == 'none' else list(extras) if args.extras == 'all'
+              else pick(args.extras, list(extras), 'extra case'))
+    cases = matrix_cases(pick(args.sensors, SENSORS, 'sensor'),
+                         pick(args.routes, ROUTES, 'route'),
+                         pick(args.scenes, SCENES, 'scene')) + [extras[n] for n in chosen]
+    print(f'seed {args.seed}, scans {args.scans or "all"}, 512 points per ring for hdl64 and '
+          f'ouster_like; correct = pose within {MAX_ERROR_M:g} m / {MAX_ERROR_DEG:g} deg; '
+          f'true loop = earlier keyframe within {RADIUS:g} m outside the exclusion window',
+          flush=True)
+    print(HEADER, flush=True)
+    jobs = [(c, args.seed, args.scans) for c in cases]
+    if args.jobs > 1:
+        from multiprocessing import Pool
+
+        with Pool(args.jobs) as pool:
+            outcomes = []
+            for o in pool.imap(_job, jobs):
+                print(row_line(o), flush=True)
+                outcomes.append(o)
+    else:
+        outcomes = []
+        for job in jobs:
+            o = _job(job)
+            print(row_line(o), flush=True)
+            outcomes.append(o)
+    misses = {o.case.name: verdict(o) for o in outcomes if verdict(o)}
+    total = Counter[str]()
+    for o in outcomes:
+        total.update({'published': o.scores['published'], 'false': o.scores['false']})
+    print(f'total: {total["published"]} published, {total["false"]} false; '
+          + ('every case meets the goal' if not misses else
+             'short of the goal: ' + '; '.join(f'{k}: {", ".join(v)}'
+                                               for k, v in misses.items())))
+    if args.dump is not None:
+        for o in outcomes:
+            _write_rows(args.dump / (o.case.name.replace('/', '_') + '.csv'), o.rows)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(
+            [{'case': o.case.name, 'keyframes': o.keyframes, 'seconds': o.seconds,
+              'reasons': o.reasons, 'shortfalls': verdict(o), **o.scores} for o in outcomes],
+            indent=1))
+    return 1 if misses else 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
