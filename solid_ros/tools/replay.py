@@ -34,6 +34,7 @@ from solid_ros.core.persistence import check_save_target
 from solid_ros.formats.bags import Bag, select_cloud_topic, select_odom_topic
 from solid_ros.formats.poses import PoseError, PoseTrack, associate, load_reference
 from solid_ros.tools.evaluation import Evaluation, evaluate, recommend_threshold, sweep_table
+from solid_ros.tools.fleet import fleet_summary_lines, replay_fleet, write_fleet_outputs
 from solid_ros.tools.loops import LoopRecord, overlap_sweep, pose_error, score_loops
 from solid_ros.tools.progress import Progress
 from solid_ros.tools.runtime import tune_allocator
@@ -542,12 +543,18 @@ def build_parser() -> argparse.ArgumentParser:
                     '(same parameter file), print loop candidates and, given reference poses, '
                     'evaluate them: Recall@1, PR curve, F1max and its threshold, ROC AUC, yaw '
                     'error; write candidates.csv, report.json and plots with --out.',
-        epilog='Reference poses come from --poses (KITTI 3x4 rows, paired with scans by order '
+        epilog='With several bags only --params, --node-name, --set, --topic, --odom-topic, '
+               '--radius, --max-pose-error-m/-deg, --out, --progress and -q apply. '
+               'Reference poses come from --poses (KITTI 3x4 rows, paired with scans by order '
                'or by --times stamps; or TUM "stamp tx ty tz qx qy qz qw") or else from the '
                "bag's Odometry topic. A query has a true loop when an earlier scan outside the "
                'exclusion window lies within --radius metres. Exit status: 0 ok, 1 bad input '
                '(bag, poses, parameters, database), 2 bad command line.')
-    p.add_argument('bag', help='ROS 2 bag directory (MCAP or sqlite3) or ROS 1 .bag file')
+    p.add_argument('bag', nargs='+', metavar='BAG',
+                   help='ROS 2 bag directory (MCAP or sqlite3) or ROS 1 .bag file; several '
+                        'bags = a fleet, one robot each (robot i = session_id i), which share '
+                        'keyframes as nodes with peers: true do and are scored on '
+                        'inter-robot loops (each needs an Odometry topic in one world frame)')
     p.add_argument('--params', metavar='FILE.yaml',
                    help='ROS 2 parameter file as given to the node (default: built-in '
                         "defaults = the SOLiD authors' parameters)")
@@ -700,11 +707,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.times and not args.poses:
         parser.error('--times needs --poses')
+    if len(args.bag) > 1:
+        single = [name for name, on in (
+            ('--poses', args.poses), ('--times', args.times), ('--load-db', args.load_db),
+            ('--save-db', args.save_db), ('--no-odom', args.no_odom),
+            ('--max-heading-deg', args.max_heading_deg is not None),
+            ('--no-plots', args.no_plots)) if on]
+        if single:
+            parser.error(f'{", ".join(single)} take one bag; {len(args.bag)} were given')
     progress = 'quiet' if args.quiet else args.progress
     tune_allocator()
     try:
         cfg, ncfg = load_config(args.params, args.node_name, _overrides(args.set))
-        result = replay(args.bag, cfg, node_config=ncfg, topic=args.topic,
+        if len(args.bag) > 1:
+            fleet = replay_fleet(args.bag, cfg, node_config=ncfg, topic=args.topic,
+                                 odom_topic=args.odom_topic, radius=args.radius,
+                                 max_pose_error_m=args.max_pose_error_m,
+                                 max_pose_error_deg=args.max_pose_error_deg, progress=progress)
+            files = write_fleet_outputs(args.out, fleet) if args.out else []
+            if not args.quiet:
+                print('\n'.join(fleet_summary_lines(fleet, PROG)))
+                if files:
+                    print(f'  outputs          {", ".join(str(f) for f in files)}')
+            return 0
+        result = replay(args.bag[0], cfg, node_config=ncfg, topic=args.topic,
                         odom_topic=args.odom_topic, use_odom=False if args.no_odom else None,
                         poses=args.poses, times=args.times, radius=args.radius,
                         max_heading_deg=args.max_heading_deg, out_dir=args.out,
