@@ -1,7 +1,8 @@
 """Fuzz: malformed clouds, parameter files, database files and bags from one fixed seed.
 
-Every input must end as documented: a cloud decodes or raises CloudError (and the detector
-either stores it or refuses it with a SolidError, the database unchanged); a parameter file is
+Every input must end as documented: a cloud decodes or raises CloudError, and the detector
+stores it exactly when some point is finite and inside the range gate (else CloudError 'no
+usable point', nothing changed); a parameter file is
 accepted or refused by solid_node (exit 2, one line) and solid_replay (exit 1, the same line)
 alike; a database file loads or raises DatabaseError quickly, is never modified, and is never
 replaced by a save unless it is a solid_ros database; a bag replays (exit 0) or stops with one
@@ -34,7 +35,7 @@ from project_paths import CONFIG_DIR
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import LoopDetector
-from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
+from solid_ros.core.errors import CloudError, ConfigError, DatabaseError
 from solid_ros.core.persistence import FORMAT, check_save_target, save_database
 from solid_ros.formats.bags import write_cloud_bag
 from solid_ros.formats.pointcloud2 import FLOAT32, FLOAT64, cloud_to_xyz
@@ -130,17 +131,63 @@ def _cloud(rng: random.Random) -> tuple[str, SimpleNamespace]:
     return kind, msg
 
 
-def _check_cloud(msg: SimpleNamespace, det: LoopDetector, stamp: int) -> None:
+def _unusable_cloud(rng: random.Random) -> tuple[str, SimpleNamespace]:
+    """A well-formed cloud whose every point is non-finite, huge, zero or out of range."""
+    n = rng.choice([1, 7, 300])
+    kind = rng.choice(['nan', 'inf', '-inf', '1e38', 'zeros', 'mixed', 'far', 'near'])
+    nprng = np.random.default_rng(rng.randrange(2**32))
+    pts = nprng.normal(size=(n, 4))
+    xyz = pts[:, :3]
+    if kind == 'mixed':
+        xyz[:] = nprng.choice([np.nan, np.inf, -np.inf, 1e38], size=(n, 3))
+        xyz[:, rng.randrange(3)] = np.nan  # not a finite point left
+    elif kind in ('far', 'near'):
+        want = CFG.max_range * rng.uniform(1.0, 1e3) if kind == 'far' else \
+            CFG.min_range * rng.uniform(0.0, 0.99)
+        xyz *= want / np.linalg.norm(xyz, axis=1, keepdims=True)
+    else:
+        xyz[:] = {'nan': np.nan, 'inf': np.inf, '-inf': -np.inf, '1e38': 1e38, 'zeros': 0.0}[kind]
+    ftype = rng.choice([FLOAT32, FLOAT64])
+    size = 4 if ftype == FLOAT32 else 8
+    fields = [SimpleNamespace(name=k, offset=i * size, datatype=ftype, count=1)
+              for i, k in enumerate(['x', 'y', 'z', 'intensity'])]
+    with np.errstate(over='ignore'):
+        data = pts.astype('<f4' if ftype == FLOAT32 else '<f8').tobytes()
+    return 'unusable ' + kind, SimpleNamespace(
+        height=1, width=n, point_step=4 * size, row_step=4 * size * n, is_bigendian=False,
+        fields=fields, data=data)
+
+
+def _usable(pts: np.ndarray, cfg: SolidConfig) -> bool:
+    """Whether a point is finite, inside the range gate and within max_distance (360 deg)."""
+    with np.errstate(invalid='ignore', over='ignore'):
+        xyz = pts.astype(np.float64)
+        d = np.linalg.norm(xyz, axis=1)
+        keep = (d > cfg.min_range) & (d < cfg.max_range)
+        keep &= np.hypot(xyz[:, 0], xyz[:, 1]) < cfg.max_distance
+    return bool(keep.any())
+
+
+def _check_cloud(msg: SimpleNamespace, det: LoopDetector, stamp: int) -> str:
+    """Decode and process; returns the outcome, raises AssertionError when it is wrong."""
     try:
         pts = cloud_to_xyz(msg)
     except CloudError:
-        return  # rejected and counted by the node and the replay
+        return 'undecodable'  # rejected and counted by the node and the replay
     assert pts.ndim == 2 and pts.shape[1] == 3, pts.shape
-    size = det.database.size
+    assert CFG.fov_width_deg == 360.0 and CFG.keyframe_min_sec == 0.0  # what _usable knows
+    before = (det.num_keyframes, det.database.next_seq)
     try:
         det.process(pts, stamp)
-    except SolidError:
-        assert det.database.size == size  # refused: database untouched
+    except CloudError as err:
+        # No usable point: refused before anything is stored (no empty keyframe).
+        assert not _usable(pts, det.config), f'usable cloud refused: {err}'
+        assert str(err).startswith('no usable point: ') and '\n' not in str(err), str(err)
+        assert (det.num_keyframes, det.database.next_seq) == before
+        return 'no usable point'
+    assert _usable(pts, det.config), 'a cloud without a usable point was stored'
+    assert (det.num_keyframes, det.database.next_seq) == (before[0] + 1, before[1] + 1)
+    return 'stored'
 
 
 # -- parameter files ------------------------------------------------------------------------------
@@ -391,9 +438,16 @@ def test_fuzz_malformed_inputs(tmp_path: Path, sources: dict[str, Path],
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
     det = LoopDetector(CFG)
+
+    def cloud(msg: SimpleNamespace, stamp: int) -> None:
+        outcomes['clouds ' + _check_cloud(msg, det, stamp)] += 1
     for i in range(140):
         kind, msg = _cloud(rng)
-        tally.check('clouds', kind, lambda m=msg, s=i: _check_cloud(m, det, s * 10**8))
+        tally.check('clouds', kind, lambda m=msg, s=i: cloud(m, s * 10**8))
+    urng = random.Random(SEED + 2)  # its own generator: the other families stay as they were
+    for i in range(40):
+        kind, msg = _unusable_cloud(urng)
+        tally.check('clouds', kind, lambda m=msg, s=140 + i: cloud(m, s * 10**8))
 
     base = (CONFIG_DIR / 'avia.yaml').read_text()
     pdir = tmp_path / 'params'
@@ -441,6 +495,7 @@ def test_fuzz_malformed_inputs(tmp_path: Path, sources: dict[str, Path],
               + f'; peak RSS grew {grew_mb:.0f} MB')
     assert total >= 300
     assert not tally.failures, '\n'.join(tally.failures[:20])
+    assert outcomes['clouds no usable point'] >= 40 and outcomes['clouds stored'] > 0
     assert grew_mb < 500
 
 

@@ -23,6 +23,13 @@ best first, until ``max_candidates`` distinct places (outside each other's
 ``margin_neighbourhood``) are verified. Without ``verify``: candidates in distance order, each
 a distinct place, at most ``max_candidates``. In both modes nothing is published within
 ``min_loop_gap`` queries of the last published loop.
+
+Unusable clouds: a cloud with no point that is finite and inside the range gate, the FOV clip
+and ``max_distance`` (all NaN, all beyond range, empty, ...) would give an all-zero R-SOLiD
+that never matches, yet take an index and move the keyframe gate and the exclusion window.
+``process`` and ``propose`` refuse it with :class:`CloudError` before anything changes, gated
+out or not, as ``process_descriptor`` refuses an all-zero R-SOLiD. Peers' and loaded scans may
+still be all zero (the database stores them; they never match).
 """
 
 from __future__ import annotations
@@ -39,9 +46,9 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.database import DescriptorDatabase, Match
+from solid_ros.core.database import DescriptorDatabase, Match, unit_vector
 from solid_ros.core.descriptor import Descriptor, describe, preprocess, voxel_downsample
-from solid_ros.core.errors import ConfigError, SolidError
+from solid_ros.core.errors import CloudError, ConfigError, SolidError
 from solid_ros.core.geometry import (
     matrix_to_vector,
     pose_to_vector,
@@ -214,6 +221,8 @@ class LoopDetector:
                                  math.radians(cfg.mount_pitch_deg),
                                  math.radians(cfg.mount_yaw_deg))
         self._levelled = not np.allclose(self._mount, np.eye(3))
+        # The descriptor's gate without the voxel grid (replace() costs about 0.5 ms).
+        self._gate_cfg = cfg.replace(voxel_size=0.0)
         self.last_descriptor: Descriptor | None = None
         self.last_was_keyframe = False
         # Best stored match of the last query, accepted or not (offline PR curves need it).
@@ -252,6 +261,7 @@ class LoopDetector:
                 raise ConfigError(f'{spec.name} is read-only while running '
                                   f'({old!r} -> {new!r})')
         self._config = config
+        self._gate_cfg = config.replace(voxel_size=0.0)
         if self.verifier is not None:
             self.verifier.reconfigure(config)
 
@@ -303,6 +313,7 @@ class LoopDetector:
             Loops to publish, best first (empty for a gated-out scan).
 
         Raises:
+            CloudError: no usable point (see the module docstring); nothing changed.
             SolidError: malformed points or pose.
         """
         proposal = self.propose(points, stamp_ns, pose)
@@ -316,11 +327,13 @@ class LoopDetector:
             The proposal to hand to :meth:`verify`, or None for a gated-out scan.
 
         Raises:
+            CloudError: no usable point (see the module docstring); nothing changed.
             SolidError: malformed points, pose or stamp (outside int64).
         """
         stamp = _stamp(stamp_ns)
         vec = pose_to_vector(pose) if pose is not None else None
         if not self.is_keyframe(stamp, vec):
+            self._check_usable(self._level(points))  # refused alike, kept or not
             self.last_was_keyframe = False
             self.last_best = None
             self.last_attempts = []
@@ -329,6 +342,8 @@ class LoopDetector:
         t0 = time.perf_counter()
         pts = self._level(points)
         desc = describe(pts, self._config)
+        if desc.num_points == 0:  # every point dropped: the R-SOLiD is all zero
+            raise CloudError(_unusable(np.shape(pts), self._config))
         cloud = self._keyframe_points(pts) if self.verifier is not None else None
         t1 = time.perf_counter()
         proposal = self._propose_descriptor(desc, stamp, vec, cloud)
@@ -341,9 +356,16 @@ class LoopDetector:
         """Like :meth:`process` for an already computed descriptor, without gating.
 
         No keyframe cloud is stored, so with ``verify`` no loop can be verified.
+
+        Raises:
+            CloudError: the R-SOLiD is all zero (or not finite); nothing changed.
+            SolidError: bad stamp or pose.
         """
+        stamp = _stamp(stamp_ns)
         vec = pose_to_vector(pose) if pose is not None else None
-        return self.verify(self._propose_descriptor(desc, _stamp(stamp_ns), vec, None))
+        if not unit_vector(desc.r_solid)[1]:
+            raise CloudError('no usable point: the R-SOLiD is all zero or not finite')
+        return self.verify(self._propose_descriptor(desc, stamp, vec, None))
 
     def _level(self, points: npt.ArrayLike) -> npt.ArrayLike:
         if not self._levelled:
@@ -353,6 +375,16 @@ class LoopDetector:
             return arr  # describe() reports the shape error
         out: FloatArray = arr[:, :3].astype(np.float64) @ self._mount.T
         return out
+
+    def _check_usable(self, points: npt.ArrayLike) -> None:
+        """Raise CloudError unless a point survives the range gate, FOV and max_distance.
+
+        The descriptor's own gate without its voxel grid: cheap enough for gated-out scans.
+        """
+        cfg = self._gate_cfg
+        kept = preprocess(points, cfg)
+        if not np.any(np.hypot(kept[:, 0], kept[:, 1]) < cfg.max_distance):
+            raise CloudError(_unusable(np.shape(points), cfg))
 
     def _keyframe_points(self, points: npt.ArrayLike) -> FloatArray:
         """Range gate and FOV clip as for the descriptor, then the verification voxel grid."""
@@ -613,6 +645,16 @@ class LoopDetector:
         cfg = config if config is not None else SolidConfig()
         clouds = CloudStore(cfg.cloud_capacity, int(cfg.cloud_memory_mb * 1e6))
         return cls(cfg, database=load_database(path, cfg, clouds), clouds=clouds)
+
+
+def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
+    """The one-line reason a cloud of ``shape`` holds no usable point."""
+    n = shape[0] if len(shape) == 2 and shape[1] > 0 else 0
+    if n == 0:
+        return 'no usable point: the cloud is empty'
+    return (f'no usable point: 0 of {n} points are finite and inside the range gate '
+            f'({cfg.min_range:g} to {cfg.max_range:g} m), the FOV ({cfg.fov_width_deg:g} deg) '
+            f'and max_distance ({cfg.max_distance:g} m)')
 
 
 def _same_place(a: Match, b: Match, hood: int) -> bool:

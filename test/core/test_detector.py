@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 import pytest
+from bad_inputs import unusable_clouds
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import LoopCandidate, LoopDetector
-from solid_ros.core.errors import ConfigError, SolidError
+from solid_ros.core.errors import CloudError, ConfigError, SolidError
 
 SEC = 1_000_000_000
 
@@ -141,15 +142,138 @@ def test_keyframe_gating_by_pose() -> None:
     assert det.num_keyframes == 3
 
 
-def test_empty_and_bad_clouds() -> None:
-    det = LoopDetector(_cfg(exclude_recent_frames=0, distance_threshold=2.0))
-    assert det.process(np.zeros((0, 3)), 0) == []
-    assert det.process(np.full((10, 3), np.nan), SEC) == []
-    assert det.process(place(0), 2 * SEC) == []  # empty scans never match
-    assert det.process(np.zeros((0, 3)), 3 * SEC) == []
-    assert det.num_keyframes == 4
-    with pytest.raises(SolidError):
+def _state(det: LoopDetector) -> tuple[object, ...]:
+    """Everything a scan can change, for comparing before and after a refusal."""
+    db = det.database.export_arrays()
+    return (det.num_keyframes, det.database.size, det.database.next_seq,
+            id(det.last_descriptor), det.last_was_keyframe, det.last_best,
+            list(det.last_attempts), repr(det.times), dict(det.reasons), len(det.clouds),
+            {k: np.asarray(v).tobytes() for k, v in db.items()})
+
+
+def _refused(det: LoopDetector, cloud: npt.ArrayLike, stamp: int, pose: object = None) -> str:
+    before = _state(det)
+    with pytest.raises(CloudError, match='^no usable point: ') as info:
+        det.process(cloud, stamp, pose)
+    assert _state(det) == before
+    with pytest.raises(CloudError):
+        det.propose(cloud, stamp, pose)
+    assert _state(det) == before
+    return str(info.value)
+
+
+@pytest.mark.parametrize('verify', [False, True])
+def test_clouds_without_a_usable_point_are_refused_and_change_nothing(verify: bool) -> None:
+    det = LoopDetector(_cfg(exclude_recent_frames=0, distance_threshold=2.0, verify=verify,
+                            keyframe_min_sec=1.0))
+    bad = unusable_clouds(1200, det.config.max_range)
+    for name, cloud in bad.items():  # before any keyframe: the first scan is always kept
+        reason = _refused(det, cloud, 0)
+        assert '\n' not in reason
+        assert reason == ('no usable point: the cloud is empty' if name == 'empty' else
+                          'no usable point: 0 of 1200 points are finite and inside the range '
+                          'gate (3 to 80 m), the FOV (360 deg) and max_distance (80 m)'), name
+    assert det.num_keyframes == 0
+    det.process(place(0), 0)
+    assert det.num_keyframes == 1
+    for cloud in bad.values():
+        _refused(det, cloud, SEC // 2)  # would be gated out
+        _refused(det, cloud, 5 * SEC)  # would be a keyframe
+    # The gate still counts from the stored scan, not from a refused one.
+    det.process(place(1), SEC)
+    assert det.last_was_keyframe and det.num_keyframes == 2
+    # Still refused when the cloud has some usable-looking values in other columns.
+    with pytest.raises(CloudError):
+        det.process(np.column_stack([bad['all NaN'], np.ones(1200)]), 3 * SEC)
+    with pytest.raises(SolidError, match='shape'):
         det.process(np.zeros((5, 2)), 4 * SEC)
+    assert det.num_keyframes == 2
+
+
+def test_the_fov_clip_and_max_distance_leave_no_usable_point() -> None:
+    det = LoopDetector(_cfg(fov_width_deg=90.0, max_distance=30.0, max_range=80.0))
+    behind = place(0)
+    behind = behind[behind[:, 0] < -5.0]  # all outside the 90 deg FOV around +x
+    assert 'FOV (90 deg)' in _refused(det, behind, 0)
+    ring = rotz(np.tile([[40.0, 0.0, 1.0]], (360, 1)), 0.0)
+    ring = np.stack([rotz(ring[:1], a)[0] for a in np.linspace(-40.0, 40.0, 360)])
+    assert 'max_distance (30 m)' in _refused(det, ring, 0)  # in range, beyond L_max
+    det.process(np.vstack([ring, [[10.0, 1.0, 0.0]]]), 0)  # one usable point is enough
+    assert det.num_keyframes == 1
+
+
+def test_process_descriptor_refuses_an_all_zero_r_solid() -> None:
+    from solid_ros.core.descriptor import describe
+    det = LoopDetector(_cfg())
+    empty = describe(np.zeros((0, 3)), det.config)
+    assert not empty.r_solid.any()
+    with pytest.raises(CloudError, match='all zero'):
+        det.process_descriptor(empty, 0)
+    assert det.num_keyframes == 0 and det.database.size == 0
+    det.process_descriptor(describe(place(0), det.config), 0)
+    assert det.num_keyframes == 1
+
+
+def _mix_in(scans: list[tuple[npt.NDArray[np.floating], int, object]], every: int,
+            offset_ns: int) -> list[tuple[npt.NDArray[np.floating], int, object, bool]]:
+    """The scans with an unusable cloud after every ``every``-th, stamped ``offset_ns`` later
+    (with the pose of the scan before it); the flag marks the unusable ones."""
+    bad = list(unusable_clouds(500).values())
+    out = []
+    for i, (cloud, stamp, pose) in enumerate(scans):
+        out.append((cloud, stamp, pose, False))
+        if i % every == 0:
+            out.append((bad[(i // every) % len(bad)], stamp + offset_ns, pose, True))
+    return out
+
+
+def _run_mixed(det: LoopDetector, scans: list[tuple[npt.NDArray[np.floating], int, object,
+                                                    bool]],
+               ) -> tuple[list[list[str]], list[bool], int]:
+    """Loops per usable scan (as repr: exact, and NaN equals NaN), keyframe flags, refusals."""
+    loops, kept, refused = [], [], 0
+    for cloud, stamp, pose, unusable in scans:
+        if unusable:
+            with pytest.raises(CloudError):
+                det.process(cloud, stamp, pose)
+            refused += 1
+            continue
+        loops.append([repr(c) for c in det.process(cloud, stamp, pose)])
+        kept.append(det.last_was_keyframe)
+    return loops, kept, refused
+
+
+def test_unusable_clouds_mixed_in_change_no_index_and_no_loop() -> None:
+    # Scans 0.6 s apart with a 1 s keyframe gate: every other one is gated out, and the
+    # unusable clouds 0.5 s after them fall on both sides of the gate.
+    scans = [(place(i % 6), int(i * 0.6 * SEC), None) for i in range(30)]
+    cfg = _cfg(keyframe_min_sec=1.0)
+    clean, kept, _ = _run_mixed(det := LoopDetector(cfg), [(*s, False) for s in scans])
+    reference = det.database.export_arrays()
+    assert sum(map(bool, clean)) >= 5 and not all(kept) and any(kept)
+    mixed_det = LoopDetector(cfg)
+    mixed, mixed_kept, refused = _run_mixed(mixed_det, _mix_in(scans, 1, SEC // 2))
+    assert refused == len(scans)
+    assert mixed == clean and mixed_kept == kept
+    got = mixed_det.database.export_arrays()
+    assert {k: np.asarray(v).tobytes() for k, v in got.items()} == {
+        k: np.asarray(v).tobytes() for k, v in reference.items()}
+
+
+def test_hku1_with_unusable_clouds_mixed_in_publishes_the_same_loops(shared_data: Path) -> None:
+    from hku1_data import hku1_scans
+    from project_paths import CONFIG_DIR
+
+    clouds, stamps = hku1_scans(shared_data)
+    poses = np.loadtxt(shared_data / 'hku1' / 'optimized_poses.txt').reshape(-1, 3, 4)
+    poses4 = [np.vstack([p, [0.0, 0.0, 0.0, 1.0]]) for p in poses]
+    cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')  # verified, gated by odometry
+    scans = list(zip(clouds, stamps, poses4))
+    clean, kept, _ = _run_mixed(LoopDetector(cfg), [(*s, False) for s in scans])
+    mixed, mixed_kept, refused = _run_mixed(LoopDetector(cfg), _mix_in(scans, 3, 1000))
+    assert refused == 105 and sum(map(len, clean)) > 0
+    assert mixed_kept == kept
+    assert mixed == clean
 
 
 def test_reconfigure_only_runtime_settings() -> None:

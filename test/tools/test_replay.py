@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bad_inputs import unusable_clouds
 from project_paths import CONFIG_DIR  # noqa: E402
 
 from solid_ros.core.config import SolidConfig
@@ -174,6 +175,33 @@ def test_malformed_clouds_are_skipped_and_counted(tmp_path: Path,
     assert len(result.report['scans']['skip_reasons']) == 3
     assert [(c.query_index, c.match_index) for c in result.candidates] == \
         [(10 + k, k) for k in range(6)]
+
+
+def test_clouds_without_a_usable_point_are_skipped_and_counted(
+        tmp_path: Path, scans: list[tuple], bags: dict[str, Path]) -> None:
+    # They decode, but the detector refuses them (CloudError): skipped like undecodable ones,
+    # so no index and no loop moves.
+    bad = list(unusable_clouds(300, TEST_CFG.max_range).values())
+    path = tmp_path / 'unusable_inside'
+    with BagWriter(path, 'mcap') as w:
+        w.add_topic('/points', POINTCLOUD2)
+        for i, (pts, stamp, _) in enumerate(scans):
+            if i % 2 == 0:
+                cloud = bad[(i // 2) % len(bad)]
+                w.write('/points', stamp - 1, w.cloud_msg(cloud.astype(np.float32), stamp - 1))
+            w.write('/points', stamp, w.cloud_msg(pts, stamp))
+    n_bad = (len(scans) + 1) // 2
+    out = tmp_path / 'out'
+    result = replay(path, TEST_CFG, out_dir=out, progress='quiet', plots=False)
+    clean = replay(bags['mcap'], TEST_CFG, progress='quiet')
+    assert result.messages == len(scans) + n_bad and result.skipped == n_bad
+    assert result.keyframes == clean.keyframes == len(scans)
+    assert _key(result) == _key(clean) and _key(clean)
+    report = json.loads((out / 'report.json').read_text())
+    assert report['scans']['skipped'] == n_bad
+    assert report['scans']['decoded'] == len(scans)
+    reasons = [r['reason'] for r in report['scans']['skip_reasons']]
+    assert reasons and all(r.startswith('no usable point: ') for r in reasons)
 
 
 def test_save_and_load_database(tmp_path: Path, bags: dict[str, Path]) -> None:
