@@ -22,10 +22,10 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.errors import DatabaseError
@@ -108,7 +108,7 @@ class DescriptorDatabase:
         # Sequence numbers of this session's scans, oldest first (scans of other sessions,
         # e.g. peer robots, may be interleaved with them).
         self._own: deque[int] = deque()
-        self._tree: cKDTree | None = None
+        self._tree: Any = None  # scipy.spatial.cKDTree, imported only in kd-tree mode
         self._tree_seqs: Int64Array = np.zeros(0, dtype=np.int64)
         self._tree_hi = 0  # the tree holds scans with seq < _tree_hi
 
@@ -306,6 +306,8 @@ class DescriptorDatabase:
         seqs, slots = seqs[keep], slots[keep]
         self._tree_seqs = seqs
         self._tree_hi = self._next
+        from scipy.spatial import cKDTree  # 0.45 s to import: only when used
+
         self._tree = (cKDTree(self._r[slots].astype(np.float64), balanced_tree=False,
                               compact_nodes=False) if len(seqs) else None)
 
