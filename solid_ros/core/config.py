@@ -327,6 +327,10 @@ class NodeConfig(_Schema):
                                  read_only=True)
     diagnostics_period_sec: float = _p(1.0, 'Period of /diagnostics messages', low=0.05,
                                        high=3600.0, read_only=True)
+    marker_max_loops: int = _p(1000, 'Newest loops drawn on ~/loop_markers (latched); older '
+                               'edges are dropped, so memory stays bounded (0 = no markers, '
+                               'the topic is not advertised)', low=0, high=100_000,
+                               read_only=True)
     peers: bool = _p(False, 'Exchange keyframe descriptors with other robots (robot id = '
                      'session_id) and publish verified inter-robot loops', read_only=True)
     peer_timeout_sec: float = _p(1.0, 'Wait this long for a peer keyframe cloud before the '

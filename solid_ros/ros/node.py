@@ -3,8 +3,14 @@
 Topics (relative names, remappable): subscribes ``points`` (sensor_msgs/PointCloud2) and,
 with ``use_odom``, ``odom`` (nav_msgs/Odometry); publishes ``~/loop_candidates``
 (std_msgs/Float64MultiArray, see :mod:`solid_ros.formats.candidates`), ``~/loop_markers``
-(visualization_msgs/MarkerArray) and ``/diagnostics``. Services ``~/save_database`` and
-``~/reset`` (std_srvs/Trigger).
+(visualization_msgs/MarkerArray, latched: transient local, depth 1) and ``/diagnostics``.
+Services ``~/save_database`` and ``~/reset`` (std_srvs/Trigger).
+
+Loop markers: one LINE_LIST of the newest ``marker_max_loops`` loops whose two positions are
+known: the query's from paired odometry, the match's as stored with its scan in the database
+(this run, a loaded session or a peer robot). Loops against other sessions are drawn in blue
+at the position stored in that session's odometry frame, which lines up only when the
+sessions share a map frame.
 
 Threading: the subscription callback only decodes (zero-copy) or rejects a cloud and appends
 it to a bounded queue; when the queue is full the oldest waiting cloud is dropped (keep newest)
@@ -35,9 +41,9 @@ from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -126,8 +132,11 @@ class SolidNode(Node):
         self._odom: deque[tuple[int, npt.NDArray[np.float64]]] = deque(maxlen=_ODOM_BUFFER)
         self._odom_frame = ''
         self._odom_misses = 0
-        self._positions: dict[int, npt.NDArray[np.float64]] = {}
-        self._edges: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = []
+        # Newest loop edges (query position, match position, other session): bounded, so
+        # neither memory nor the rebuild on every loop grows with the run.
+        self._edges: deque[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], bool]] = (
+            deque(maxlen=self._cfg.marker_max_loops))
+        self._edges_lock = threading.Lock()  # the verify thread adds, ~/reset clears
 
         reliability = (ReliabilityPolicy.RELIABLE if self._cfg.qos_reliability == 'reliable'
                        else ReliabilityPolicy.BEST_EFFORT)
@@ -136,7 +145,10 @@ class SolidNode(Node):
         # Deep history: a reliable writer drops unacknowledged samples beyond it, and a back
         # end must not miss a loop when a burst of candidates meets a slow subscriber.
         self._pub_cands = self.create_publisher(Float64MultiArray, '~/loop_candidates', 100)
-        self._pub_markers = self.create_publisher(MarkerArray, '~/loop_markers', 10)
+        # Latched: a display that starts late still gets the current edges.
+        self._pub_markers = (self.create_publisher(MarkerArray, '~/loop_markers', QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL)) if self._cfg.marker_max_loops else None)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(PointCloud2, 'points', self._on_points, qos)
         if self._cfg.use_odom:
@@ -306,11 +318,6 @@ class SolidNode(Node):
         self.stats.processed += 1
         if pose is None and self._cfg.use_odom:
             self.stats.without_odom += 1
-        if pose is not None:
-            # Match positions of this session are looked up by the match stamp.
-            self._positions[stamp_ns] = pose[:3, 3].copy()
-            while len(self._positions) > self._solid.capacity:
-                del self._positions[next(iter(self._positions))]
         if proposal is None:
             return
         if self._peers is not None:
@@ -340,10 +347,11 @@ class SolidNode(Node):
                 self._verifying = True
             try:
                 with self._verify_lock:
-                    cands = self._detector.verify(proposal)
-                    verify_ms = self._detector.times.verify
+                    detector = self._detector
+                    cands = detector.verify(proposal)
+                    verify_ms = detector.times.verify
                 self._stage_ms['verify'].append(verify_ms)
-                self._publish(cands, pose)
+                self._publish(cands, pose, proposal, detector)
             except Exception as err:  # the thread must survive any bad keyframe
                 self.stats.failed += 1
                 self.get_logger().error(f'verification failed: {type(err).__name__}: {err}',
@@ -353,8 +361,8 @@ class SolidNode(Node):
                     self._verifying = False
                     self._cv.notify_all()
 
-    def _publish(self, cands: Sequence[LoopCandidate],
-                 pose: npt.NDArray[np.float64] | None) -> None:
+    def _publish(self, cands: Sequence[LoopCandidate], pose: npt.NDArray[np.float64] | None,
+                 proposal: Proposal, detector: LoopDetector) -> None:
         if not cands:
             return
         self.stats.loops += len(cands)
@@ -370,7 +378,7 @@ class SolidNode(Node):
                 f'loop: keyframe {c.query_index} ({_sec(c.query_stamp_ns)}) -> session '
                 f'{c.match_session} keyframe {c.match_index} ({_sec(c.match_stamp_ns)}), '
                 f'{state}, yaw {math.degrees(c.yaw):.1f} deg, t ({t}) m')
-        self._add_edges(cands, pose)
+        self._add_edges(cands, pose, proposal, detector)
 
     # -- peer robots (see solid_ros.ros.peers) ---------------------------------------------------
 
@@ -398,24 +406,37 @@ class SolidNode(Node):
         msg.data = rows.reshape(-1).tolist()
         return msg
 
-    def _add_edges(self, cands: Sequence[Any], pose: npt.NDArray[np.float64] | None) -> None:
-        if pose is None:
+    def _add_edges(self, cands: Sequence[LoopCandidate], pose: npt.NDArray[np.float64] | None,
+                   proposal: Proposal, detector: LoopDetector) -> None:
+        if pose is None or self._pub_markers is None:
             return
-        added = False
+        edges = []
         for c in cands:
-            match_pos = self._match_position(c)
+            match_pos = self._match_position(c, proposal, detector)
             if match_pos is not None:
-                self._edges.append((pose[:3, 3].copy(), match_pos))
-                added = True
-        if added:
-            self._pub_markers.publish(self._markers())
+                other = int(c.match_session) != self._solid.session_id
+                edges.append((pose[:3, 3].copy(), match_pos, other))
+        if edges:
+            with self._edges_lock:
+                self._edges.extend(edges)
+                self._pub_markers.publish(self._markers())
 
-    def _match_position(self, cand: Any) -> npt.NDArray[np.float64] | None:
-        # Positions are known for scans of this run (matched by stamp); earlier sessions
-        # loaded from a file get no edge.
-        if int(cand.match_session) != self._solid.session_id:
+    def _match_position(self, cand: LoopCandidate, proposal: Proposal,
+                        detector: LoopDetector) -> npt.NDArray[np.float64] | None:
+        """Position stored with the matched scan (any session), or None when unknown."""
+        seq = next((h.match.seq for h in proposal.hits
+                    if (h.match.session, h.match.index) == (cand.match_session,
+                                                            cand.match_index)), None)
+        if seq is None:
             return None
-        return self._positions.get(int(cand.match_stamp_ns))
+        # Under the stage-1 lock: it stores scans, and may evict this one meanwhile.
+        with self._det_lock:
+            db = detector.database
+            if (detector is not self._detector or not db.is_stored(seq)
+                    or db.match_info(seq)[:2] != (cand.match_index, cand.match_session)):
+                return None
+            stored = db.pose(seq)
+            return None if stored is None else np.asarray(stored[:3], dtype=np.float64)
 
     def _markers(self) -> MarkerArray:
         m = Marker()
@@ -426,9 +447,11 @@ class SolidNode(Node):
         m.pose.orientation.w = 1.0
         m.scale.x = 0.1
         m.color.r, m.color.g, m.color.b, m.color.a = 1.0, 0.2, 0.2, 1.0
-        for a, b in self._edges:
+        own, other = m.color, ColorRGBA(r=0.2, g=0.6, b=1.0, a=1.0)
+        for a, b, foreign in self._edges:
             m.points.append(Point(x=float(a[0]), y=float(a[1]), z=float(a[2])))
             m.points.append(Point(x=float(b[0]), y=float(b[1]), z=float(b[2])))
+            m.colors.extend((other, other) if foreign else (own, own))
         return MarkerArray(markers=[m])
 
     # -- services and diagnostics -----------------------------------------------------------
@@ -458,8 +481,13 @@ class SolidNode(Node):
             self._detector = self._new_detector(load=False)
             if self._peers is not None:
                 self._detector.fetch_cloud = self._peers.fetch
-        self._edges.clear()
-        self._positions.clear()
+        with self._edges_lock:
+            self._edges.clear()
+            if self._pub_markers is not None:
+                # Replaces the latched edges: a display that starts later shows none either.
+                clear = Marker(ns='loop_edges', action=Marker.DELETEALL)
+                clear.header.frame_id = self._odom_frame or 'map'
+                self._pub_markers.publish(MarkerArray(markers=[clear]))
         response.success, response.message = True, 'database cleared'
         self.get_logger().info('database cleared by ~/reset')
         return response

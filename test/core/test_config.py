@@ -42,6 +42,14 @@ def test_invalid_values_name_key_and_range(key: str, value: object, words: list[
         assert word in str(info.value)
 
 
+def test_marker_bound_is_a_bounded_integer() -> None:
+    assert NodeConfig().marker_max_loops == 1000
+    assert NodeConfig(marker_max_loops=0).marker_max_loops == 0  # markers off
+    for bad in (-1, 100_001, 2.5):
+        with pytest.raises(ConfigError, match=r'marker_max_loops.*\[0, 100000\]'):
+            NodeConfig(marker_max_loops=bad)
+
+
 def test_replace_validates_and_rejects_unknown_keys() -> None:
     cfg = SolidConfig()
     assert cfg.replace(distance_threshold=0.2).distance_threshold == 0.2

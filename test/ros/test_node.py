@@ -31,7 +31,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy_msgs import make_cloud  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
@@ -107,6 +107,15 @@ def read_bag(path: Path, points_topic: str = '/points',
             else:
                 out.append(('odom', from_rosbags_odom(m)))
     return out
+
+
+def make_odom(stamp_ns: int, x: float, y: float = 0.0, frame: str = 'odom') -> Odometry:
+    msg = Odometry()
+    msg.header.frame_id = frame
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    msg.pose.pose.position.x, msg.pose.pose.position.y = float(x), float(y)
+    msg.pose.pose.orientation.w = 1.0
+    return msg
 
 
 def stamp_of(msg: Any) -> int:
@@ -219,6 +228,19 @@ class Harness:
         self.wait_for(fut.done, 'set_parameters')
         return fut.result().results[0]
 
+    def late_markers(self) -> MarkerArray:
+        """What a display subscribing now with transient-local QoS receives first."""
+        got: list[MarkerArray] = []
+        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        sub = self.client.create_subscription(MarkerArray, '/solid_node/loop_markers',
+                                              got.append, qos)
+        try:
+            self.wait_for(lambda: bool(got), 'latched markers', 10.0)
+        finally:
+            self.client.destroy_subscription(sub)
+        return got[0]
+
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()
@@ -284,6 +306,9 @@ def test_hku1_bag_replay_finds_the_revisit(harness: Callable[..., Harness],
     h.wait_for(lambda: bool(h.markers)
                and len(h.markers[-1].markers[0].points) == 2 * len(got), 'all loop edges', 10.0)
     assert h.markers[-1].markers[0].header.frame_id == 'map'
+    # Latched: a display started after the last loop still gets every edge.
+    late = h.late_markers().markers[0]
+    assert len(late.points) == 2 * len(got) and late.ns == 'loop_edges'
 
     def latest() -> dict[str, str]:
         return {kv.key: kv.value for d in h.diagnostics[-1:] for kv in d.status[0].values}
@@ -393,7 +418,7 @@ def test_save_restart_load_finds_first_session(harness: Callable[..., Harness],
     first = [(k, m) for k, m in hku1 if stamp_of(m) < split]
     second = [(k, m) for k, m in hku1 if stamp_of(m) >= stamps[250]]
     h1 = harness([Parameter('database_save_path', value=str(db))])
-    h1.replay(first)
+    h1.replay(_odom_first(first))
     saved = h1.call('/solid_node/save_database')
     assert saved.success, saved.message
     assert db.is_file()
@@ -410,10 +435,24 @@ def test_save_restart_load_finds_first_session(harness: Callable[..., Harness],
     assert any(5 <= c['match_index'] <= 50 for c in from_first)
     cfg = SolidConfig.from_yaml(AVIA).replace(session_id=1)
     assert [key(c) for c in got] == offline(second, cfg, LoopDetector.load(db, cfg))
+    # Loops against the loaded session are drawn too, at the positions saved with its scans
+    # (blue), the others red.
+    h2.wait_for(lambda: bool(h2.markers)
+                and len(h2.markers[-1].markers[0].points) == 2 * len(got), 'all edges', 10.0)
+    edges = h2.markers[-1].markers[0]
+    blue = [c.b == 1.0 for c in edges.colors[::2]]
+    assert blue == [c['match_session'] == 0 for c in got]
+    odom = {stamp_of(m): m.pose.pose.position for k, m in first if k == 'odom'}
+    for p, c in zip(edges.points[1::2], got, strict=True):
+        if c['match_session'] == 0:  # float32 as stored in the database
+            want = odom[int(c['match_stamp_ns'])]
+            assert abs(p.x - want.x) + abs(p.y - want.y) + abs(p.z - want.z) < 1e-3
 
     reset = h2.call('/solid_node/reset')
     assert reset.success
     assert h2.node.wait_idle(10.0)
+    # The reset also clears the latched edges.
+    assert [m.action for m in h2.late_markers().markers] == [3]  # DELETEALL
     h2.candidates.clear()
     h2.replay(second[:20])
     assert h2.candidates == []  # database cleared: nothing old to match
@@ -425,3 +464,39 @@ def test_bad_load_path_refuses_to_start(context: Context, tmp_path: Path) -> Non
     with pytest.raises(SolidError):
         SolidNode(context=context, parameter_overrides=[
             Parameter('database_load_path', value=str(tmp_path / 'missing.npz'))])
+
+
+def _loops_of_one_scene(n: int) -> list[tuple[str, Any]]:
+    """``n`` clouds of one scene, each after odometry at x = i: every cloud after the first
+    matches the one before it (no verification, no exclusion window)."""
+    scene = _scene(3)
+    out: list[tuple[str, Any]] = []
+    for i in range(n):
+        stamp = (i + 1) * 10**9
+        out += [('odom', make_odom(stamp, float(i), 1.0)), ('points', make_cloud(scene, stamp))]
+    return out
+
+
+LOOP_EVERY_SCAN = [Parameter('verify', value=False), Parameter('distance_threshold', value=0.5),
+                   Parameter('exclude_recent_frames', value=0)]
+
+
+def test_markers_keep_only_the_newest_loops(harness: Callable[..., Harness]) -> None:
+    h = harness(LOOP_EVERY_SCAN + [Parameter('marker_max_loops', value=3)], params_file=None)
+    h.replay(_loops_of_one_scene(9))
+    assert h.node.stats.loops == 8 and h.node.stats.without_odom == 0
+    h.wait_for(lambda: len(h.markers) == 8, 'one marker message per loop', 10.0)
+    edges = h.late_markers().markers[0]
+    assert edges.header.frame_id == 'odom'
+    # The newest three loops: query at x = 6, 7, 8, each to the first scan (distance ties).
+    assert [(p.x, p.y) for p in edges.points] == [(6.0, 1.0), (0.0, 1.0), (7.0, 1.0),
+                                                  (0.0, 1.0), (8.0, 1.0), (0.0, 1.0)]
+    assert len(h.node._edges) == 3
+
+
+def test_markers_off(harness: Callable[..., Harness]) -> None:
+    h = harness(LOOP_EVERY_SCAN + [Parameter('marker_max_loops', value=0)], params_file=None)
+    h.replay(_loops_of_one_scene(3))
+    assert h.node.stats.loops == 2
+    assert h.node.count_publishers('/solid_node/loop_markers') == 0
+    assert h.markers == [] and not h.node._edges
