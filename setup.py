@@ -12,6 +12,9 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')),
+        # ROS layout: ros2 launch finds share/<pkg>/launch; the sources stay under config/.
+        ('share/' + package_name + '/launch', glob('config/launch/*.launch.yaml')),
+        ('share/' + package_name + '/rviz', glob('config/rviz/*.rviz')),
     ],
     python_requires='>=3.10',
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'mcap', 'matplotlib',

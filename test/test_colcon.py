@@ -1,7 +1,10 @@
 """Build the package with colcon in a temporary workspace and run the installed solid_node.
 
 Each shipped parameter file must start the executable and have it answer over DDS; a bad
-file must make it exit non-zero naming the parameter.
+file must make it exit non-zero naming the parameter. The launch file and the RViz config are
+installed under share/solid_ros/, and the node started as the installed launch file starts it
+(expanded by test/launch_files.py: there is no ros2 launch here) subscribes to the remapped
+topics with the preset's parameters.
 """
 
 from __future__ import annotations
@@ -21,6 +24,13 @@ import pytest
 rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from launch_files import (  # noqa: E402
+    LAUNCH_FILE,
+    RVIZ_FILE,
+    launch_entries,
+    node_command,
+    resolve_args,
+)
 from rcl_interfaces.srv import GetParameters  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
@@ -29,7 +39,7 @@ from rclpy.node import Node  # noqa: E402
 from solid_ros.core.config import SolidConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = sorted((ROOT / 'config').glob('*.yaml'))
+CONFIGS = sorted((ROOT / 'config').glob('*.yaml'))  # the presets (launch/, rviz/ below)
 BIN = Path(sys.executable).parent
 COLCON = BIN / 'colcon'
 PACKAGE_ITEMS = ('package.xml', 'setup.py', 'setup.cfg', 'resource', 'solid_ros', 'config')
@@ -57,6 +67,57 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     assert (prefix / 'lib' / 'solid_ros' / 'solid_node').is_file()
     assert (prefix / 'share' / 'solid_ros' / 'config' / 'avia.yaml').is_file()
     return prefix
+
+
+def test_launch_file_and_rviz_config_are_installed(installed: Path) -> None:
+    share = installed / 'share' / 'solid_ros'
+    assert (share / 'launch' / 'solid.launch.yaml').read_bytes() == LAUNCH_FILE.read_bytes()
+    assert (share / 'rviz' / 'solid.rviz').read_bytes() == RVIZ_FILE.read_bytes()
+    assert not (share / 'config' / 'solid.launch.yaml').exists()  # not taken for a preset
+
+
+def test_installed_node_runs_as_the_launch_file_starts_it(installed: Path, domain: int,
+                                                           tmp_path: Path) -> None:
+    share = installed / 'share' / 'solid_ros'
+    given = {'sensor': 'avia', 'points': '/livox/lidar', 'odom': '/Odometry'}
+    entries = launch_entries(share / 'launch' / 'solid.launch.yaml')
+    values = resolve_args(entries, given, share)
+    (node_entry,) = [e['node'] for e in entries if e.get('node', {}).get('exec') == 'solid_node']
+    argv = node_command(node_entry, values, share, tmp_path)
+    exe = installed / 'lib' / node_entry['pkg'] / argv[0]
+    proc = subprocess.Popen([str(exe), *argv[1:]], env=_env(installed, domain),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = Node('solid_launch_probe', context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        client = node.create_client(GetParameters, '/solid_node/get_parameters')
+        deadline = time.monotonic() + 60.0
+        while not client.service_is_ready() and proc.poll() is None:
+            assert time.monotonic() < deadline, 'solid_node did not come up'
+            executor.spin_once(timeout_sec=0.1)
+        assert proc.poll() is None, proc.communicate()[1]
+        fut = client.call_async(GetParameters.Request(names=['fov_width_deg', 'use_odom']))
+        executor.spin_until_future_complete(fut, timeout_sec=30.0)
+        got = fut.result().values
+        assert got[0].double_value == SolidConfig.from_yaml(share / 'config' / 'avia.yaml'
+                                                            ).fov_width_deg
+        assert got[1].bool_value is True
+        for topic in ('/livox/lidar', '/Odometry'):
+            while not node.get_subscriptions_info_by_topic(topic):
+                assert time.monotonic() < deadline, f'solid_node does not subscribe to {topic}'
+                executor.spin_once(timeout_sec=0.1)
+            assert {i.node_name for i in node.get_subscriptions_info_by_topic(topic)} == {
+                'solid_node'}
+        assert not node.get_subscriptions_info_by_topic('/points')
+    finally:
+        code, err = _stop(proc)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    assert code == 0, err
 
 
 def _env(prefix: Path, domain: int) -> dict[str, str]:
