@@ -2,11 +2,11 @@
 
 Every input must end as documented: a cloud decodes or raises CloudError, and the detector
 stores it exactly when some point is finite and inside the range gate (else CloudError 'no
-usable point', nothing changed); a parameter file is
-accepted or refused by solid_node (exit 2, one line) and solid_replay (exit 1, the same line)
-alike; a database file loads or raises DatabaseError quickly, is never modified, and is never
-replaced by a save unless it is a solid_ros database; a bag replays (exit 0) or stops with one
-line (exit 1), and a damaged MCAP file written here always stops. In-process calls do the bulk
+usable point', nothing changed); a parameter file is accepted or refused by solid_node (exit
+2, one line) and solid_replay (exit 1, the same line) alike; a database file loads or raises
+DatabaseError quickly, is never modified, and is never replaced by a save unless it is a
+solid_ros database; a bag replays (exit 0) or stops with one line (exit 1), its files
+unchanged, and a damaged MCAP file written here always stops. In-process calls do the bulk
 (the executables run the same functions); a handful of real executable runs check the wiring.
 The counts tried and survived are printed.
 """
@@ -49,6 +49,12 @@ CFG = SolidConfig(exclude_recent_frames=2, capacity=64)
 
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else ''
+
+
+def _tree_sha(path: Path) -> dict[str, str]:
+    """Hash of every file of a bag (a file or a directory): nothing changed, added or gone."""
+    files = sorted(p for p in path.rglob('*') if p.is_file()) if path.is_dir() else [path]
+    return {str(p.relative_to(path.parent)): _sha(p) for p in files if p.exists()}
 
 
 def _flip(blob: bytes, rng: random.Random, n: int = 1) -> bytes:
@@ -401,8 +407,10 @@ def _bag_variant(rng: random.Random, sources: dict[str, Path], dest: Path) -> tu
 
 def _check_bag(name: str, bag: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> str:
     capsys.readouterr()
+    before = _tree_sha(bag)
     code = replay.main([str(bag), '--out', str(out), '--no-plots', '-q'])
     stdout, err = capsys.readouterr()
+    assert _tree_sha(bag) == before, 'the replay changed the bag'
     assert stdout == ''
     if code == 1:
         assert err.count('\n') == 1 and err.startswith('solid_replay: error: '), err
@@ -528,6 +536,7 @@ def test_fuzz_through_the_executables(tmp_path: Path, sources: dict[str, Path]) 
         ([str(replay_exe), str(damaged), '-q'], 1, 'fails its CRC check'),
     ]
     before = {p: _sha(p) for p in (params, crafted, storage)}
+    bags_before = {p: _tree_sha(p) for p in (sources['mcap'], damaged)}
     for argv, code, words in runs:
         proc = subprocess.run(argv, capture_output=True, text=True, timeout=60, env=env)
         lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
@@ -535,3 +544,4 @@ def test_fuzz_through_the_executables(tmp_path: Path, sources: dict[str, Path]) 
         assert len(lines) == 1 and words in lines[0], (argv, proc.stderr)
         assert 'Traceback' not in proc.stderr
     assert before == {p: _sha(p) for p in before}
+    assert bags_before == {p: _tree_sha(p) for p in bags_before}
