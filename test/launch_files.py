@@ -152,6 +152,17 @@ def node_topics() -> dict[str, dict[str, str]]:
     return out
 
 
+def publisher_qos(topic: str) -> str:
+    """Source text of the QoS argument solid_node creates the publisher of ``topic`` with."""
+    source = NODE_SOURCE.read_text(encoding='utf-8')
+    for call in ast.walk(ast.parse(source)):
+        if (isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute)
+                and call.func.attr == 'create_publisher' and len(call.args) >= 3
+                and isinstance(call.args[1], ast.Constant) and call.args[1].value == topic):
+            return ast.get_source_segment(source, call.args[2]) or ''
+    raise KeyError(f'solid_node creates no publisher {topic!r}')
+
+
 def rviz_displays(path: Path = RVIZ_FILE) -> list[dict[str, Any]]:
     """The displays of an RViz2 config (groups flattened)."""
     doc = yaml.safe_load(path.read_text(encoding='utf-8'))

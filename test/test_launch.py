@@ -24,6 +24,7 @@ from launch_files import (
     launch_entries,
     node_command,
     node_topics,
+    publisher_qos,
     resolve_args,
     rviz_displays,
     setup_kwargs,
@@ -167,9 +168,12 @@ def test_rviz_config_shows_cloud_odometry_and_latched_loop_markers() -> None:
     private = {name: kind for name, kind in topics['pub'].items() if name.startswith('~/')}
     assert private['~/loop_markers'] == 'MarkerArray'
     assert markers['Topic']['Value'] == f'/{NODE_NAME}/loop_markers'
-    # The node latches its markers: a late RViz sees them only as a transient-local reader.
+    # The node latches its markers: a late RViz sees them only as a transient-local reader
+    # (and a transient-local reader gets nothing from a volatile writer).
     assert markers['Topic']['Durability Policy'] == 'Transient Local'
     assert markers['Topic']['Reliability Policy'] == 'Reliable'
+    qos = publisher_qos('~/loop_markers')
+    assert 'DurabilityPolicy.TRANSIENT_LOCAL' in qos and 'ReliabilityPolicy.RELIABLE' in qos
     # Cloud and odometry as the node subscribes to them (remapped together by the launch).
     cloud = displays['rviz_default_plugins/PointCloud2']['Topic']
     odom = displays['rviz_default_plugins/Odometry']['Topic']
