@@ -12,6 +12,14 @@ known: the query's from paired odometry, the match's as stored with its scan in 
 at the position stored in that session's odometry frame, which lines up only when the
 sessions share a map frame.
 
+Health (logged as throttled warnings and raised to WARN on /diagnostics while it lasts; the
+windows are wall-clock seconds): no cloud on the resolved points topic for ``_SILENCE_SEC``
+since start or since the last one; with ``use_odom``, no odometry for as long, or odometry
+whose stamps lie more than ``max(_CLOCK_GAP_SEC, 10 x odom_tolerance_sec)`` from the cloud
+stamps (another clock); clouds rejected in the last ``_SILENCE_SEC``. Each distinct reason
+for a rejection (numbers aside) is logged when it first occurs, repeats at most every
+``_WARN_THROTTLE_SEC``.
+
 Threading: the subscription callback only decodes (zero-copy) or rejects a cloud and appends
 it to a bounded queue; when the queue is full the oldest waiting cloud is dropped (keep newest)
 and counted as skipped. One worker thread runs the detector and publishes, so the executor is
@@ -21,10 +29,11 @@ never blocked by descriptor computation.
 from __future__ import annotations
 
 import math
+import re
 import sys
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +77,11 @@ _ODOM_BUFFER = 512
 _ODOM_WAIT_SEC = 0.25
 _ODOM_MAX_MISSES = 3  # waits in a row that saw no odometry before the node stops waiting
 _WARN_THROTTLE_SEC = 5.0
+_SILENCE_SEC = 5.0  # no cloud / no odometry this long (since start or the last one) is a problem
+_REPEAT_SEC = 30.0  # a lasting problem is logged again this often
+_HEALTH_PERIOD_SEC = 1.0
+_CLOCK_GAP_SEC = 1.0  # least cloud-odometry stamp gap taken for another clock
+_REASON_KINDS = 32  # distinct rejection reasons remembered for throttling
 _MIN_PROPOSALS = 20  # keyframes that may wait for verification (at least queue_size)
 
 
@@ -132,6 +146,17 @@ class SolidNode(Node):
         self._odom: deque[tuple[int, npt.NDArray[np.float64]]] = deque(maxlen=_ODOM_BUFFER)
         self._odom_frame = ''
         self._odom_misses = 0
+        # Health: wall-clock (monotonic) times of the last cloud / odometry / rejections, the
+        # stamp gap to the nearest odometry at the last pairing, the problems logged.
+        self._started = time.monotonic()
+        self._last_cloud: float | None = None
+        self._last_odom: float | None = None
+        self._odom_gap: tuple[float, int] | None = None
+        self._rejected_at: deque[float] = deque(maxlen=10_000)
+        self._reject_lock = threading.Lock()
+        self._reasons: OrderedDict[str, list[float]] = OrderedDict()
+        self._last_reason = ''
+        self._problems_logged: dict[str, float] = {}
         # Newest loop edges (query position, match position, other session): bounded, so
         # neither memory nor the rebuild on every loop grows with the run.
         self._edges: deque[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], bool]] = (
@@ -150,7 +175,7 @@ class SolidNode(Node):
             history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL)) if self._cfg.marker_max_loops else None)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(PointCloud2, 'points', self._on_points, qos)
+        self._points_sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
         if self._cfg.use_odom:
             # Deep enough that a burst of odometry is not dropped before pairing.
             odom_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
@@ -160,6 +185,7 @@ class SolidNode(Node):
         self.create_service(Trigger, '~/save_database', self._on_save)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_timer(self._cfg.diagnostics_period_sec, self._publish_diagnostics)
+        self.create_timer(_HEALTH_PERIOD_SEC, self._check_health)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._peers: PeerLink | None = None
         if self._cfg.peers:
@@ -229,14 +255,13 @@ class SolidNode(Node):
 
     def _on_points(self, msg: PointCloud2) -> None:
         self.stats.received += 1
+        self._last_cloud = time.monotonic()
         try:
             points = cloud_to_xyz(msg)
             if points.shape[0] == 0:
                 raise CloudError('cloud has no points')
         except CloudError as err:
-            self.stats.rejected += 1
-            self.get_logger().warning(f'rejected PointCloud2 ({err}); {self.stats.rejected} '
-                                      'rejected so far', throttle_duration_sec=_WARN_THROTTLE_SEC)
+            self._reject(str(err))
             return
         item = (points, _stamp_ns(msg.header.stamp))
         with self._cv:
@@ -256,6 +281,7 @@ class SolidNode(Node):
             self.get_logger().warning(f'odometry message skipped: {err}',
                                       throttle_duration_sec=_WARN_THROTTLE_SEC)
             return
+        self._last_odom = time.monotonic()
         with self._cv:
             self._odom.append((_stamp_ns(msg.header.stamp), pose))
             self._odom_frame = msg.header.frame_id
@@ -282,9 +308,92 @@ class SolidNode(Node):
             if waited and (not self._odom or self._odom[-1][0] < stamp_ns):
                 self._odom_misses += 1
             best = min(self._odom, key=lambda sp: abs(sp[0] - stamp_ns), default=None)
+        if best is not None:
+            self._odom_gap = (time.monotonic(), stamp_ns - best[0])
         if best is None or abs(best[0] - stamp_ns) > tol:
             return None
         return best[1]
+
+    def _reject(self, reason: str) -> None:
+        """Count a rejected cloud; log each distinct reason at once, its repeats throttled."""
+        now = time.monotonic()
+        kind = re.sub(r'\d+', '#', reason)  # the same reason for clouds of other sizes
+        with self._reject_lock:
+            self.stats.rejected += 1
+            self._rejected_at.append(now)
+            self._last_reason = reason
+            seen = self._reasons.get(kind)
+            if seen is None:
+                seen = self._reasons[kind] = [now, 0.0]
+                while len(self._reasons) > _REASON_KINDS:
+                    self._reasons.popitem(last=False)
+                text = 'first of its kind'
+            else:
+                self._reasons.move_to_end(kind)
+                seen[1] += 1
+                if now - seen[0] < _WARN_THROTTLE_SEC:
+                    return
+                text = f'{int(seen[1])} more like it since it was last logged'
+                seen[:] = [now, 0.0]
+            total = self.stats.rejected
+        self.get_logger().warning(f'rejected PointCloud2 on {self._points_sub.topic_name}: '
+                                  f'{reason} ({text}; {total} rejected so far)')
+
+    def _problems(self) -> dict[str, str]:
+        """The input problems now, by kind, each as one line naming the topic."""
+        now = time.monotonic()
+        out: dict[str, str] = {}
+        points = self._points_sub.topic_name
+        if self._last_cloud is None and now - self._started > _SILENCE_SEC:
+            pubs = self.count_publishers(points)
+            hint = (f'{pubs} publisher(s): check their QoS against qos_reliability '
+                    f'{self._cfg.qos_reliability!r}' if pubs else
+                    'no publisher: check the topic name or remap points:=<your topic>')
+            out['no_clouds'] = (f'no PointCloud2 received on {points} in the '
+                                f'{now - self._started:.0f} s since start ({hint})')
+        elif self._last_cloud is not None and now - self._last_cloud > _SILENCE_SEC:
+            out['no_clouds'] = (f'no PointCloud2 received on {points} for the last '
+                                f'{now - self._last_cloud:.0f} s ({self.stats.received} before)')
+        if self._cfg.use_odom:
+            odom = self._odom_sub.topic_name
+            since = self._last_odom if self._last_odom is not None else self._started
+            if now - since > _SILENCE_SEC:
+                when = (f'for {now - since:.0f} s' if self._last_odom is not None
+                        else f'in the {now - since:.0f} s since start')
+                out['no_odom'] = (f'use_odom is on but no nav_msgs/Odometry received on {odom} '
+                                  f'{when} ({self.count_publishers(odom)} publisher(s)); '
+                                  'clouds are processed without pose')
+            gap = self._odom_gap
+            limit = max(_CLOCK_GAP_SEC, 10.0 * self._cfg.odom_tolerance_sec)
+            if gap is not None and now - gap[0] <= _SILENCE_SEC and abs(gap[1]) > limit * _NS:
+                out['odom_clock'] = (f'odometry on {odom} is stamped {-gap[1] / _NS:+.3f} s from '
+                                     f'the clouds on {points} (tolerance '
+                                     f'{self._cfg.odom_tolerance_sec:g} s): another clock? '
+                                     '(use_sim_time, the bag clock, the driver time source); '
+                                     'clouds are processed without pose')
+        with self._reject_lock:
+            while self._rejected_at and now - self._rejected_at[0] > _SILENCE_SEC:
+                self._rejected_at.popleft()
+            recent, reason = len(self._rejected_at), self._last_reason
+        if recent:
+            out['rejected'] = (f'{recent} PointCloud2 rejected on {points} in the last '
+                               f'{_SILENCE_SEC:.0f} s (latest: {reason})')
+        return out
+
+    def _check_health(self) -> None:
+        """Log a problem when it appears and every ``_REPEAT_SEC`` while it lasts."""
+        now = time.monotonic()
+        problems = self._problems()
+        for kind, text in problems.items():
+            if kind == 'rejected':
+                continue  # _reject logs each reason itself
+            last = self._problems_logged.get(kind)
+            if last is None or now - last >= _REPEAT_SEC:
+                self._problems_logged[kind] = now
+                self.get_logger().warning(text)
+        for kind in [k for k in self._problems_logged if k not in problems]:
+            del self._problems_logged[kind]
+            self.get_logger().info(f'recovered: {_RECOVERED[kind]}')
 
     # -- processing --------------------------------------------------------------------------
 
@@ -512,11 +621,23 @@ class SolidNode(Node):
         pct = (np.percentile(times, [50, 95, 99]) if times.size else np.full(3, np.nan))
         status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: loop detector',
                                   hardware_id='solid_ros')
-        status.level = (DiagnosticStatus.WARN if (s.skipped or s.failed or s.verify_skipped)
-                        else DiagnosticStatus.OK)
-        status.message = (f'{s.processed} processed, {s.skipped} skipped, {s.rejected} rejected, '
-                          f'{s.loops} loops')
+        problems = self._problems()
+        status.level = (DiagnosticStatus.WARN if (s.skipped or s.failed or s.verify_skipped
+                                                  or problems) else DiagnosticStatus.OK)
+        status.message = '; '.join([*problems.values(), (
+            f'{s.processed} processed, {s.skipped} skipped, {s.rejected} rejected, '
+            f'{s.loops} loops')])
+        now = time.monotonic()
+        gap = self._odom_gap
         values: dict[str, object] = {
+            'points_topic': self._points_sub.topic_name,
+            'seconds_since_last_cloud': _age(now, self._last_cloud),
+            'odom_topic': self._odom_sub.topic_name if self._cfg.use_odom else '',
+            'seconds_since_last_odom': _age(now, self._last_odom),
+            'odom_stamp_offset_sec': 'nan' if gap is None else f'{-gap[1] / _NS:.3f}',
+            'clouds_rejected_recently': len(self._rejected_at),
+            'last_reject_reason': self._last_reason,
+            'problems': ', '.join(problems) or 'none',
             'clouds_received': s.received, 'clouds_processed': s.processed,
             'clouds_skipped': s.skipped, 'clouds_rejected': s.rejected,
             'clouds_failed': s.failed, 'clouds_without_odom': s.without_odom,
@@ -555,6 +676,14 @@ class SolidNode(Node):
             if thread.is_alive() and thread is not threading.current_thread():
                 thread.join(timeout=10.0)
         super().destroy_node()
+
+
+_RECOVERED = {'no_clouds': 'PointCloud2 arriving', 'no_odom': 'odometry arriving',
+              'odom_clock': 'odometry stamps match the clouds again'}
+
+
+def _age(now: float, then: float | None) -> str:
+    return 'never' if then is None else f'{now - then:.1f}'
 
 
 def _update_detector_config(detector: LoopDetector, config: SolidConfig) -> None:

@@ -152,7 +152,7 @@ class Harness:
     """The node under test plus a client node, spun by one executor thread."""
 
     def __init__(self, ctx: Context, overrides: list[Parameter], params_file: Path | None,
-                 remap: list[str] | None = None) -> None:
+                 remap: list[str] | None = None, matched: bool = True) -> None:
         cli = ['--ros-args']
         if params_file is not None:
             cli += ['--params-file', str(params_file)]
@@ -178,7 +178,9 @@ class Harness:
         self.executor.add_node(self.client)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
-        self.wait_for(lambda: self.pub_points.get_subscription_count() > 0, 'points matched')
+        if matched:
+            self.wait_for(lambda: self.pub_points.get_subscription_count() > 0,
+                          'points matched')
 
     def wait_for(self, pred: Callable[[], bool], what: str, timeout: float = TIMEOUT) -> None:
         deadline = time.monotonic() + timeout
@@ -241,6 +243,15 @@ class Harness:
             self.client.destroy_subscription(sub)
         return got[0]
 
+    def status(self) -> dict[str, str]:
+        """The newest /diagnostics status: its values plus 'level' and 'message'."""
+        if not self.diagnostics:
+            return {}
+        st = self.diagnostics[-1].status[0]
+        return {kv.key: kv.value for kv in st.values} | {'level': str(int.from_bytes(
+            st.level, 'little') if isinstance(st.level, bytes) else st.level),
+            'message': st.message}
+
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()
@@ -253,9 +264,9 @@ def harness(context: Context) -> Iterator[Callable[..., Harness]]:
     made: list[Harness] = []
 
     def make(overrides: list[Parameter] | None = None, params_file: Path | None = AVIA,
-             remap: list[str] | None = None) -> Harness:
+             remap: list[str] | None = None, matched: bool = True) -> Harness:
         h = Harness(context, NO_DROP + (overrides or []), params_file,
-                    remap if remap is not None else ['odom:=/odom_slam'])
+                    remap if remap is not None else ['odom:=/odom_slam'], matched)
         made.append(h)
         return h
 
@@ -500,3 +511,87 @@ def test_markers_off(harness: Callable[..., Harness]) -> None:
     assert h.node.stats.loops == 2
     assert h.node.count_publishers('/solid_node/loop_markers') == 0
     assert h.markers == [] and not h.node._edges
+
+
+# -- health: silent topics, another clock, rejected clouds -----------------------------------
+
+
+def _problems(h: Harness) -> set[str]:
+    return set(h.status().get('problems', 'none').split(', ')) - {'none'}
+
+
+def test_silent_topics_and_odometry_on_another_clock_warn(
+        harness: Callable[..., Harness], capfd: pytest.CaptureFixture[str]) -> None:
+    # Remapped to topics nobody publishes (a typo): nothing arrives.
+    h = harness(remap=['points:=/lidar_typo', 'odom:=/odom_typo'], matched=False)
+    h.wait_for(lambda: {'no_clouds', 'no_odom'} <= _problems(h), 'silence reported', 20.0)
+    st = h.status()
+    assert st['level'] == '1'  # WARN
+    assert 'no PointCloud2 received on /lidar_typo' in st['message']
+    assert 'since start' in st['message'] and 'remap points:=' in st['message']
+    assert 'no nav_msgs/Odometry received on /odom_typo' in st['message']
+    assert st['points_topic'] == '/lidar_typo' and st['seconds_since_last_cloud'] == 'never'
+    h.wait_for(lambda: 'no PointCloud2 received on /lidar_typo' in capfd.readouterr().err,
+               'the warning naming the resolved topic', 10.0)
+
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    pub_points = h.client.create_publisher(PointCloud2, '/lidar_typo', qos)
+    pub_odom = h.client.create_publisher(Odometry, '/odom_typo', qos)
+    h.wait_for(lambda: pub_points.get_subscription_count() > 0, 'points matched')
+    h.wait_for(lambda: pub_odom.get_subscription_count() > 0, 'odom matched')
+    scene = _scene(4)
+
+    def send(i: int, odom_offset_ns: int) -> None:
+        stamp = 10**12 + i * 10**8
+        pub_odom.publish(make_odom(stamp + odom_offset_ns, 0.1 * i))
+        pub_points.publish(make_cloud(scene, stamp))
+        h.wait_for(lambda: h.node.stats.received > i, 'cloud delivered')
+
+    # Clouds arrive, with odometry stamped 1000 s later (another clock).
+    for i in range(3):
+        send(i, 1000 * 10**9)
+    assert h.node.wait_idle(TIMEOUT)
+    h.wait_for(lambda: 'odom_clock' in _problems(h) and 'no_clouds' not in _problems(h)
+               and 'no_odom' not in _problems(h) and h.status()['clouds_processed'] == '3',
+               'the clock offset reported', 20.0)
+    st = h.status()
+    assert st['level'] == '1'
+    # The last cloud's nearest odometry is the first one: 1000 s - 0.2 s away.
+    assert 'odometry on /odom_typo is stamped +999.800 s from the clouds on /lidar_typo' in (
+        st['message'])
+    assert float(st['odom_stamp_offset_sec']) == 999.8
+    assert h.node.stats.without_odom == 3
+    h.wait_for(lambda: 'stamped +999.' in capfd.readouterr().err, 'the clock warning', 10.0)
+
+    # Matching stamps: every problem is gone while the clouds keep coming.
+    for i in range(3, 6):
+        send(i, 0)
+    h.wait_for(lambda: h.status().get('level') == '0', 'diagnostics back to OK', 20.0)
+    assert h.node.stats.without_odom == 3
+    assert float(h.status()['odom_stamp_offset_sec']) == 0.0
+
+
+def test_rejected_clouds_warn_and_log_every_distinct_reason(
+        harness: Callable[..., Harness], capfd: pytest.CaptureFixture[str]) -> None:
+    h = harness([Parameter('use_odom', value=False)], params_file=None)
+
+    def short(n: int) -> PointCloud2:
+        msg = make_cloud(np.ones((n, 3)), 10**9)
+        msg.data = msg.data[:-4]
+        return msg
+
+    no_z = make_cloud(np.ones((10, 3)), 10**9)
+    no_z.fields = no_z.fields[:2]
+    # Two reasons, each several times; short clouds of other sizes are the same reason.
+    h.replay([('points', m) for m in (short(10), short(20), no_z, short(30), no_z, no_z)])
+    assert h.node.stats.rejected == 6 and h.node.stats.failed == 0
+    h.wait_for(lambda: 'rejected' in _problems(h), 'rejections reported', 10.0)
+    st = h.status()
+    assert st['level'] == '1'
+    assert '6 PointCloud2 rejected on /points in the last 5 s' in st['message']
+    assert "no field 'z'" in st['last_reject_reason']
+    logged = [line for line in capfd.readouterr().err.splitlines()
+              if 'rejected PointCloud2 on /points' in line]
+    # Each reason once, though they came within the throttle period of one another.
+    assert len(logged) == 2, logged
+    assert 'data has' in logged[0] and "has no field 'z'" in logged[1]
