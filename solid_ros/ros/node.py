@@ -408,6 +408,8 @@ class SolidNode(Node):
                 self._busy = True
             try:
                 self._process(points, stamp_ns)
+            except CloudError as err:  # decoded, but nothing the detector can use
+                self._reject(str(err))
             except Exception as err:  # the worker must survive any bad scan
                 self.stats.failed += 1
                 self.get_logger().error(f'processing failed: {type(err).__name__}: {err}',

@@ -595,3 +595,30 @@ def test_rejected_clouds_warn_and_log_every_distinct_reason(
     # Each reason once, though they came within the throttle period of one another.
     assert len(logged) == 2, logged
     assert 'data has' in logged[0] and "has no field 'z'" in logged[1]
+
+
+def test_clouds_without_a_usable_point_are_rejected_not_stored(
+        harness: Callable[..., Harness], capfd: pytest.CaptureFixture[str]) -> None:
+    # They decode, but the detector finds no usable point (CloudError): counted and logged
+    # as rejected, no keyframe stored, the node goes on.
+    h = harness([Parameter('use_odom', value=False)] + LOOP_EVERY_SCAN, params_file=None)
+    scene = _scene(5)
+    unusable = [np.full((500, 3), np.nan), np.full((500, 3), np.inf), np.full((500, 3), 1e38),
+                np.zeros((500, 3))]
+    messages = []
+    for i in range(5):
+        messages.append(('points', make_cloud(scene, (2 * i + 1) * 10**9)))
+        if i < len(unusable):
+            messages.append(('points', make_cloud(unusable[i], (2 * i + 2) * 10**9)))
+    h.replay(messages)
+    s = h.node.stats
+    assert (s.received, s.processed, s.rejected, s.failed) == (9, 5, 4, 0)
+    assert h.node._db_size() == 5
+    # Indices stay contiguous: the good clouds are keyframes 0-4, each loop to keyframe 0.
+    assert [(c['query_index'], c['match_index']) for c in h.candidates] == [
+        (1, 0), (2, 0), (3, 0), (4, 0)]
+    logged = [line for line in capfd.readouterr().err.splitlines()
+              if 'rejected PointCloud2 on /points: no usable point' in line]
+    assert logged and not any('processing failed' in line for line in logged)
+    h.wait_for(lambda: 'rejected' in _problems(h), 'rejections on /diagnostics', 10.0)
+    assert h.status()['clouds_rejected'] == '4'
