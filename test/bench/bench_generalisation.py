@@ -125,9 +125,9 @@ class Outcome:
     rows: list[dict[str, Any]]
 
 
-def run_case(case: Case, seed: int, scans: int | None) -> Outcome:
-    """Replay one simulated drive through the detector and score its published loops."""
-    cfg = case_config(case)
+def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None) -> Outcome:
+    """Replay one simulated drive through the detector with ``cfg`` and score its published
+    loops."""
     det = LoopDetector(cfg)
     poses: list[np.ndarray] = []
     attempts: list[list[LoopCandidate]] = []
@@ -209,7 +209,7 @@ def _write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
         w.writerows(rows)
 
 
-def _job(args: tuple[Case, int, int | None]) -> Outcome:
+def _job(args: tuple[Case, SolidConfig, int, int | None]) -> Outcome:
     return run_case(*args)
 
 
@@ -247,7 +247,8 @@ def main(argv: Sequence[str] | None = None) -> int:
           f'true loop = earlier keyframe within {RADIUS:g} m outside the exclusion window',
           flush=True)
     print(HEADER, flush=True)
-    jobs = [(c, args.seed, args.scans) for c in cases]
+    # Presets are read once, up front: the run sees one version of the files.
+    jobs = [(c, case_config(c), args.seed, args.scans) for c in cases]
     if args.jobs > 1:
         from multiprocessing import Pool
 
