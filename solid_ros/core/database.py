@@ -12,8 +12,9 @@ the stored vectors). Brute force is one float32 matrix-vector product. The kd-tr
 the L2-normalised R-SOLiD (on unit vectors ``|a - b|^2 = 2 * cosine_distance``, so the order is
 the same) and searches the scans added since its last rebuild exactly, so nothing is missed.
 
-A scan whose R-SOLiD is all zero (empty cloud) is stored, so indices stay contiguous, but it
-neither matches nor is matched.
+A scan whose R-SOLiD is all zero (another robot's, or one from a file; the detector refuses
+such clouds of its own) is stored, so indices stay contiguous, but it neither matches nor is
+matched.
 """
 
 from __future__ import annotations

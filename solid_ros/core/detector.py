@@ -388,9 +388,8 @@ class LoopDetector:
 
     def _keyframe_points(self, points: npt.ArrayLike) -> FloatArray:
         """Range gate and FOV clip as for the descriptor, then the verification voxel grid."""
-        cfg = self._config
-        gated = preprocess(points, cfg.replace(voxel_size=0.0))
-        return voxel_downsample(gated, cfg.verify_voxel_size)
+        gated = preprocess(points, self._gate_cfg)
+        return voxel_downsample(gated, self._config.verify_voxel_size)
 
     def _propose_descriptor(self, desc: Descriptor, stamp: int, vec: FloatArray | None,
                             cloud: FloatArray | None) -> Proposal:

@@ -16,7 +16,7 @@ class DatabaseError(SolidError):
 
 
 class CloudError(SolidError, ValueError):
-    """A point cloud message cannot be decoded."""
+    """A point cloud cannot be decoded or holds no usable point."""
 
 
 class BagError(SolidError):
