@@ -28,7 +28,7 @@ setup(
     zip_safe=True,
     maintainer='solid_ros maintainers',
     maintainer_email='maintainers@users.noreply.h-seed-7b7549ff.example',
-    description='SOLiD LiDAR place recognition: loop candidates with yaw for LiDAR SLAM.',
+    description='SOLiD LiDAR loop closure: verified loops with a 6-DoF pose for LiDAR SLAM.',
     license='BSD-3-Clause',
     entry_points={
         'console_scripts': [
