@@ -115,6 +115,8 @@ class Query:
         self.points: FloatArray = pts
         self.normals: FloatArray = np.zeros_like(pts)
         self.structure: npt.NDArray[np.bool_] = np.zeros(len(pts), dtype=bool)
+        # Row order that puts structure points first (stored clouds are kept this way).
+        self.structure_first: npt.NDArray[np.intp] = np.arange(len(pts))
         if not self.usable:
             return
         cloud = sg.PointCloud(pts)
@@ -131,6 +133,7 @@ class Query:
         if self.coarse.size() >= _MIN_POINTS:
             sg.estimate_covariances(self.coarse, self.coarse_tree, num_neighbors=_NEIGHBOURS)
         self.ranges = range_image(pts)
+        self.structure_first = np.argsort(~self.structure, kind='stable')
 
     @property
     def n_struct(self) -> int:
@@ -139,8 +142,8 @@ class Query:
 
     def keyframe_cloud(self) -> KeyframeCloud:
         """The cloud to store for this scan: float32, structure first."""
-        order = np.argsort(~self.structure, kind='stable')
-        return KeyframeCloud(self.points[order].astype(np.float32), self.n_struct)
+        return KeyframeCloud(self.points[self.structure_first].astype(np.float32),
+                             self.n_struct)
 
 
 class Source:
@@ -212,11 +215,18 @@ def range_image(points: FloatArray) -> FloatArray:
     return flat
 
 
-def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float) -> float:
+def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float,
+                        structure: int | None = None) -> float:
     """Fraction of ``points`` (in the viewing sensor's frame) that lie in front of the surface
     that sensor saw in their direction, by more than ``margin`` plus 5 % of the range: the
     sensor looked through where they claim a surface is. Directions it saw nothing in do not
-    count (sky, outside its field of view, beyond its range)."""
+    count (sky, outside its field of view, beyond its range).
+
+    With ``structure`` (the first ``structure`` rows are structure points), the larger of the
+    fraction over all points and over the structure points alone: the ground aligns anywhere
+    and dilutes the first, so a misplaced wall, pole or tree shows in the second, while a
+    wrong tilt shows on the ground in the first.
+    """
     if not len(points):
         return 0.0
     b, r = _bins(points)
@@ -224,8 +234,13 @@ def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float) -
     known = np.isfinite(seen)
     if not known.any():
         return 0.0
-    conflict = r[known] < seen[known] - margin - 0.05 * seen[known]
-    return float(conflict.mean())
+    conflict = known & (r < seen - margin - 0.05 * seen)
+    out = float(conflict.sum()) / float(known.sum())
+    if structure is not None:
+        n_known = int(known[:structure].sum())
+        if n_known:
+            out = max(out, float(conflict[:structure].sum()) / n_known)
+    return out
 
 
 @dataclass(frozen=True)
@@ -321,9 +336,13 @@ class Support:
         inliers: number of supporting points.
         patches: coarse voxels holding supporting points: independent surface patches (the
             errors of points on one patch are correlated).
-        conflict: free-space conflict, the larger of both directions: the fraction of one
-            cloud's points (where the other sensor saw a surface in their direction) lying
-            in front of that surface, in space the other sensor saw through.
+        conflict: free-space conflict, the largest of both directions, each over all points
+            and over the structure points alone: the fraction of one cloud's points (where the
+            other sensor saw a surface in their direction) lying in front of that surface, in
+            space the other sensor saw through. The ground, which aligns anywhere, would
+            dilute a misplaced wall or tree in the fraction over all points.
+        spread: the horizontal constraint left without the object that contributes most,
+            per query structure point.
     """
 
     fitness: float
@@ -404,9 +423,10 @@ def measure_support(query: Query, source: Source, T_qm: FloatArray,
     cells = np.floor(moved[inlier] / settings.coarse_voxel).astype(np.int64)
     patches = len(np.unique(cells, axis=0)) if n_inl else 0
     margin = settings.neighbour_distance
-    conflict = max(free_space_conflict(moved, query.ranges, margin),
-                   free_space_conflict((query.points - T[:3, 3]) @ T[:3, :3],
-                                       source.ranges, margin))
+    order = query.structure_first
+    conflict = max(free_space_conflict(moved, query.ranges, margin, source.n_struct),
+                   free_space_conflict((query.points[order] - T[:3, 3]) @ T[:3, :3],
+                                       source.ranges, margin, query.n_struct))
     return Support(spread=max(spread, 0.0), fitness=n_inl / max(len(moved), 1),
                    overlap_match=int((inlier & struct_m).sum()) / max(n_sm, 1),
                    overlap_query=overlap_q, rmse=rmse, constraint=max(constraint, 0.0),
