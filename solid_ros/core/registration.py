@@ -234,7 +234,8 @@ def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float,
     known = np.isfinite(seen)
     if not known.any():
         return 0.0
-    conflict = known & (r < seen - margin - 0.05 * seen)
+    conflict = np.zeros(len(r), dtype=bool)
+    conflict[known] = r[known] < seen[known] - margin - 0.05 * seen[known]
     out = float(conflict.sum()) / float(known.sum())
     if structure is not None:
         n_known = int(known[:structure].sum())
