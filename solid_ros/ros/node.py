@@ -28,6 +28,7 @@ never blocked by descriptor computation.
 
 from __future__ import annotations
 
+import importlib
 import math
 import re
 import sys
@@ -448,6 +449,15 @@ class SolidNode(Node):
 
     def _run_verify(self) -> None:
         """Stage 2 thread: verify keyframes in order, publish their loops."""
+        if self._solid.verify:
+            # small_gicp and scipy.ndimage take about 0.8 s to import: here, before the
+            # first keyframe, not in its latency (where the queue would drop clouds).
+            for module in ('small_gicp', 'scipy.ndimage'):
+                try:
+                    importlib.import_module(module)
+                except ImportError as err:
+                    self.get_logger().error(f'verification needs {module}: {err} '
+                                            '(pip install small-gicp)')
         while True:
             with self._cv:
                 while not self._proposals and not self._stop:
