@@ -37,6 +37,10 @@ _NEIGHBOURS = 10  # points per normal/covariance estimate
 _MIN_POINTS = 10  # fewer points than this cannot be registered
 _COARSE_ITERATIONS = 15  # the coarse stage only has to land in the fine stage's basin
 _GOOD_COARSE = 0.5  # coarse overlap that ends the search over heading hypotheses
+# Coarse convergence: 0.5 deg / 1 cm steps are far inside a coarse voxel (small_gicp's
+# defaults, 0.1 deg / 1 mm, kept 80 % of coarse runs going to the iteration cap).
+_COARSE_ROTATION_EPS = math.radians(0.5)
+_COARSE_TRANSLATION_EPS = 0.01
 
 
 def load_small_gicp() -> Any:
@@ -292,7 +296,9 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
         res = sg.align(query.coarse, source.coarse, query.coarse_tree, init,
                        registration_type='GICP',
                        max_correspondence_distance=settings.coarse_distance,
-                       max_iterations=min(settings.max_iterations, _COARSE_ITERATIONS))
+                       max_iterations=min(settings.max_iterations, _COARSE_ITERATIONS),
+                       rotation_epsilon=_COARSE_ROTATION_EPS,
+                       translation_epsilon=_COARSE_TRANSLATION_EPS)
         T = np.asarray(res.T_target_source, dtype=np.float64)
         _, sq = query.coarse_tree.batch_nearest_neighbor_search(src_pts @ T[:3, :3].T + T[:3, 3])
         overlap = float(np.mean(np.asarray(sq) < (0.5 * settings.coarse_voxel) ** 2))
