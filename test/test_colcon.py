@@ -16,8 +16,9 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -87,37 +88,57 @@ def test_installed_node_runs_as_the_launch_file_starts_it(installed: Path, domai
     exe = installed / 'lib' / node_entry['pkg'] / argv[0]
     proc = subprocess.Popen([str(exe), *argv[1:]], env=_env(installed, domain),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ctx = Context()
-    rclpy.init(context=ctx)
-    node = Node('solid_launch_probe', context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
+    probe = _Probe(proc, 'solid_launch_probe')
     try:
-        client = node.create_client(GetParameters, '/solid_node/get_parameters')
-        deadline = time.monotonic() + 60.0
-        while not client.service_is_ready() and proc.poll() is None:
-            assert time.monotonic() < deadline, 'solid_node did not come up'
-            executor.spin_once(timeout_sec=0.1)
-        assert proc.poll() is None, proc.communicate()[1]
-        fut = client.call_async(GetParameters.Request(names=['fov_width_deg', 'use_odom']))
-        executor.spin_until_future_complete(fut, timeout_sec=30.0)
-        got = fut.result().values
+        got = probe.parameters(['fov_width_deg', 'use_odom'])
         assert got[0].double_value == SolidConfig.from_yaml(share / 'config' / 'avia.yaml'
                                                             ).fov_width_deg
         assert got[1].bool_value is True
+        info = probe.node.get_subscriptions_info_by_topic
         for topic in ('/livox/lidar', '/Odometry'):
-            while not node.get_subscriptions_info_by_topic(topic):
-                assert time.monotonic() < deadline, f'solid_node does not subscribe to {topic}'
-                executor.spin_once(timeout_sec=0.1)
-            assert {i.node_name for i in node.get_subscriptions_info_by_topic(topic)} == {
-                'solid_node'}
-        assert not node.get_subscriptions_info_by_topic('/points')
+            probe.spin_until(lambda t=topic: bool(info(t)), f'solid_node subscribes to {topic}')
+            assert {i.node_name for i in info(topic)} == {'solid_node'}
+        assert not info('/points')
     finally:
-        code, err = _stop(proc)
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        code, err = probe.close()
     assert code == 0, err
+
+
+class _Probe:
+    """An rclpy node beside a started solid_node process, to wait for it and query it."""
+
+    def __init__(self, proc: subprocess.Popen[str], name: str) -> None:
+        self.proc = proc
+        self.ctx = Context()
+        rclpy.init(context=self.ctx)
+        self.node = Node(name, context=self.ctx)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.deadline = time.monotonic() + 60.0
+
+    def spin_until(self, pred: Callable[[], bool], what: str) -> None:
+        while not pred():
+            assert time.monotonic() < self.deadline, f'timed out: {what}'
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def parameters(self, names: list[str]) -> list[Any]:
+        """The node's values of ``names``, once its parameter service is up."""
+        client = self.node.create_client(GetParameters, '/solid_node/get_parameters')
+        self.spin_until(lambda: client.service_is_ready() or self.proc.poll() is not None,
+                        'solid_node comes up')
+        assert self.proc.poll() is None, self.proc.communicate()[1]
+        fut = client.call_async(GetParameters.Request(names=names))
+        self.executor.spin_until_future_complete(fut, timeout_sec=30.0)
+        return list(fut.result().values)
+
+    def close(self) -> tuple[int, str]:
+        """Stop the node process (SIGINT) and the probe; the process's exit code and stderr."""
+        try:
+            return _stop(self.proc)
+        finally:
+            self.executor.shutdown()
+            self.node.destroy_node()
+            rclpy.try_shutdown(context=self.ctx)
 
 
 def _env(prefix: Path, domain: int) -> dict[str, str]:
@@ -156,34 +177,17 @@ def test_installed_node_starts_with_each_yaml(installed: Path, domain: int,
     proc = subprocess.Popen([str(exe), '--ros-args', '--params-file', str(config)],
                             env=_env(installed, domain), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
-    ctx = Context()
-    rclpy.init(context=ctx)
-    node = Node('solid_colcon_probe', context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
+    probe = _Probe(proc, 'solid_colcon_probe')
     try:
         diags: list[DiagnosticArray] = []
-        node.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 10)
-        client = node.create_client(GetParameters, '/solid_node/get_parameters')
-        deadline = time.monotonic() + 60.0
-        while not client.service_is_ready() and proc.poll() is None:
-            assert time.monotonic() < deadline, 'solid_node did not come up'
-            executor.spin_once(timeout_sec=0.1)
-        assert proc.poll() is None, proc.communicate()[1]
-        fut = client.call_async(GetParameters.Request(names=['fov_width_deg', 'max_range']))
-        executor.spin_until_future_complete(fut, timeout_sec=30.0)
-        values = [v.double_value for v in fut.result().values]
+        probe.node.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 10)
+        values = [v.double_value for v in probe.parameters(['fov_width_deg', 'max_range'])]
         want = SolidConfig.from_yaml(config)
         assert values == [want.fov_width_deg, want.max_range]
-        while not diags:
-            assert time.monotonic() < deadline, 'no diagnostics from solid_node'
-            executor.spin_once(timeout_sec=0.1)
+        probe.spin_until(lambda: bool(diags), 'diagnostics from solid_node')
         assert diags[0].status[0].name.startswith('/solid_node')
     finally:
-        code, err = _stop(proc)
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        code, err = probe.close()
     assert code == 0, err
 
 
