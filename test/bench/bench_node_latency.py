@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -171,18 +172,26 @@ def main() -> int:
         print(f'highest sustained rate without skips: {best:.0f} Hz '
               f'(processing p50 {diag.get("processing_ms_p50")} ms in the node)')
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        executor.shutdown()
-        # A spin still inside rcl at interpreter exit aborts the process ("terminate called
-        # without an active exception"): let it return first.
-        spinner.join(timeout=10.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown(proc, executor, spinner, node)
     return 0
+
+
+def shutdown(proc: subprocess.Popen[Any], executor: Any, spinner: threading.Thread,
+             node: Any) -> None:
+    """Stop the node process (SIGINT, then kill) and this process's probe node."""
+    import rclpy
+
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+    executor.shutdown()
+    # A spin still inside rcl at interpreter exit aborts the process ("terminate called
+    # without an active exception"): let it return first.
+    spinner.join(timeout=10.0)
+    node.destroy_node()
+    rclpy.try_shutdown()
 
 
 if __name__ == '__main__':

@@ -29,7 +29,6 @@ import argparse
 import array
 import os
 import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -39,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from bench_node_latency import shutdown
 
 ROOT = Path(__file__).resolve().parents[2]
 NS = 1_000_000_000
@@ -211,15 +211,7 @@ def main() -> int:
         print(f'soak stopped: {err}; node log {node_log}', file=sys.stderr)
         status = 1
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        executor.shutdown()
-        spinner.join(timeout=10.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown(proc, executor, spinner, node)
     return status
 
 
