@@ -544,6 +544,9 @@ def test_silent_topics_and_odometry_on_another_clock_warn(
     def send(i: int, odom_offset_ns: int) -> None:
         stamp = 10**12 + i * 10**8
         pub_odom.publish(make_odom(stamp + odom_offset_ns, 0.1 * i))
+        # The odometry first: on a loaded machine it may otherwise miss the node's wait.
+        h.wait_for(lambda: any(s == stamp + odom_offset_ns for s, _ in list(h.node._odom)),
+                   'odometry delivered')
         pub_points.publish(make_cloud(scene, stamp))
         h.wait_for(lambda: h.node.stats.received > i, 'cloud delivered')
 
