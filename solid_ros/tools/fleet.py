@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import heapq
-import json
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from solid_ros.formats.bags import Bag, CloudScan, select_cloud_topic, select_od
 from solid_ros.formats.poses import PoseTrack, associate
 from solid_ros.tools.loops import pose_error
 from solid_ros.tools.progress import Progress
+from solid_ros.tools.reports import write_json
 
 __all__ = ['FLEET_CSV_COLUMNS', 'FleetResult', 'fleet_summary_lines', 'replay_fleet',
            'write_fleet_outputs']
@@ -280,8 +280,7 @@ def write_fleet_outputs(out: str | Path, result: FleetResult) -> list[Path]:
     try:
         out.mkdir(parents=True, exist_ok=True)
         report = out / 'report.json'
-        report.write_text(json.dumps(result.report, indent=2, default=_json_default) + '\n',
-                          encoding='utf-8')
+        write_json(report, result.report)
         rows = out / 'candidates.csv'
         with rows.open('w', newline='', encoding='utf-8') as fh:
             w = csv.writer(fh)
@@ -298,12 +297,6 @@ def write_fleet_outputs(out: str | Path, result: FleetResult) -> list[Path]:
     except OSError as err:
         raise SolidError(f'cannot write the outputs to {out}: {err}') from err
     return [report, rows]
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise TypeError(f'{type(obj).__name__} is not JSON serialisable')
 
 
 def _fmt(v: float | None) -> str:

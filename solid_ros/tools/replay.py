@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import platform
 import resource
@@ -37,6 +36,7 @@ from solid_ros.tools.evaluation import Evaluation, evaluate, recommend_threshold
 from solid_ros.tools.fleet import fleet_summary_lines, replay_fleet, write_fleet_outputs
 from solid_ros.tools.loops import LoopRecord, overlap_sweep, pose_error, score_loops
 from solid_ros.tools.progress import Progress
+from solid_ros.tools.reports import write_json
 from solid_ros.tools.runtime import tune_allocator
 
 __all__ = ['ReplayResult', 'build_parser', 'main', 'replay']
@@ -424,7 +424,7 @@ def _write_outputs(out: Path, r: ReplayResult, plots: bool) -> list[Path]:
                                  min_overlap=r.config.verify_min_overlap if r.config.verify
                                  else None)
         r.report['files'] = [str(f) for f in files]
-        files[1].write_text(json.dumps(_jsonable(r.report), indent=2) + '\n', encoding='utf-8')
+        write_json(files[1], r.report)
     except OSError as err:
         raise SolidError(f'cannot write to {out}: {err.strerror or err}') from err
     return files
@@ -436,19 +436,6 @@ def _match_rows(r: ReplayResult) -> npt.NDArray[np.intp]:
         if b is not None and b.match_session == r.config.session_id:
             out[i] = b.match_index
     return out
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    return obj
 
 
 def _write_csv(path: Path, r: ReplayResult) -> None:
