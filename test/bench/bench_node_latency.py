@@ -12,12 +12,18 @@ sends KITTI scan 313 (~121k points), rotated and jittered per message, at 10 Hz 
 from /diagnostics; then it steps the rate up (``--rates``) to find the highest rate
 sustained without skips. Timings are noisy on a shared machine; re-run on an idle one for
 published figures.
+
+Before the node, the same publisher runs for ``--duration`` seconds against an echo process
+(a bare rclpy subscriber with the node's QoS and allocator tuning that answers each cloud at
+once): the transport floor, what any subscriber pays for the cloud to arrive. The node's own
+share is its median minus that floor. ``--no-floor`` skips it.
 """
 
 from __future__ import annotations
 
 import argparse
 import array
+import math
 import os
 import random
 import signal
@@ -33,6 +39,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / 'shared' / 'data'
 NS = 1_000_000_000
+_ECHO_TOPIC = '/solid_latency_echo'
 
 
 def _variants(points: np.ndarray, count: int, seed: int = 0) -> list[bytes]:
@@ -57,7 +64,12 @@ def main() -> int:
     parser.add_argument('--verify', action='store_true',
                         help='keep registration on: latency to a verified loop (default: '
                              'verify:=false, the descriptor path alone)')
+    parser.add_argument('--no-floor', action='store_true',
+                        help='skip the transport floor (echo process) run')
+    parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.echo:
+        return echo()
     pcd = DATA / 'kitti' / 'pcd' / '000313.pcd'
     if not pcd.is_file():
         print(f'KITTI scan not found at {pcd}; nothing to measure', file=sys.stderr)
@@ -83,7 +95,7 @@ def main() -> int:
                 '-p', 'distance_threshold:=2.0', '-p', 'qos_reliability:=reliable',
                 '-p', 'use_odom:=false', '-p', 'diagnostics_period_sec:=0.5',
                 '-p', f'verify:={"true" if args.verify else "false"}']
-    proc = subprocess.Popen(node_cmd, env=dict(os.environ), stderr=subprocess.PIPE, text=True)
+    proc: subprocess.Popen[str] | None = None
 
     rclpy.init()
     node = Node('solid_latency_bench')
@@ -107,7 +119,15 @@ def main() -> int:
             if s.name.startswith('/solid_node'):
                 diag.update({kv.key: kv.value for kv in s.values})
 
+    def on_echo(msg: Float64MultiArray) -> None:
+        now = time.perf_counter()
+        with lock:
+            t0 = sent.get(int(msg.data[0]))
+            if t0 is not None:
+                latency[int(msg.data[0])] = (now - t0) * 1e3
+
     node.create_subscription(Float64MultiArray, '/solid_node/loop_candidates', on_cands, 100)
+    node.create_subscription(Float64MultiArray, _ECHO_TOPIC, on_echo, 100)
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -145,7 +165,26 @@ def main() -> int:
             missing = len(sent) - len(latency)
         return lat, int(diag.get('clouds_skipped', 0)) - skipped0, missing
 
+    floor = math.nan
     try:
+        if not args.no_floor:
+            echo_proc = subprocess.Popen([sys.executable, __file__, '--echo'],
+                                         env=dict(os.environ))
+            try:
+                _wait_for_subscriber(pub, echo_proc)
+                run(10.0, 2.0)
+                lat, _, missing = run(10.0, args.duration)
+                floor = float(np.median(lat))
+                print(f'transport floor (echo process, no processing), 10 Hz: median '
+                      f'{floor:.1f} ms, p95 {np.percentile(lat, 95):.1f} ms, without answer '
+                      f'{missing}')
+            finally:
+                echo_proc.send_signal(signal.SIGINT)
+                echo_proc.wait(timeout=20)
+            while pub.get_subscription_count() > 0:  # the echo's subscription must be gone
+                time.sleep(0.1)
+        proc = subprocess.Popen(node_cmd, env=dict(os.environ), stderr=subprocess.PIPE,
+                                text=True)
         deadline = time.monotonic() + 60
         while pub.get_subscription_count() == 0:
             if proc.poll() is not None or time.monotonic() > deadline:
@@ -159,6 +198,8 @@ def main() -> int:
               f'{len(lat)} candidate messages; latency median {np.median(lat):.1f} ms, '
               f'p95 {np.percentile(lat, 95):.1f} ms, max {lat.max():.1f} ms; '
               f'skipped {skipped}, without result {missing}')
+        if math.isfinite(floor):
+            print(f'node share over the transport floor: {np.median(lat) - floor:.1f} ms')
         best = 10.0 if skipped == 0 and missing == 0 else 0.0
         for rate in [float(r) for r in args.rates.split(',') if r]:
             lat, skipped, missing = run(rate, args.step_duration)
@@ -169,6 +210,7 @@ def main() -> int:
             if not ok:
                 break
             best = rate
+        print('diagnostics:', {k: v for k, v in diag.items() if k.startswith('clouds')})
         print(f'highest sustained rate without skips: {best:.0f} Hz '
               f'(processing p50 {diag.get("processing_ms_p50")} ms in the node)')
     finally:
@@ -176,16 +218,58 @@ def main() -> int:
     return 0
 
 
-def shutdown(proc: subprocess.Popen[Any], executor: Any, spinner: threading.Thread,
+def _wait_for_subscriber(pub: Any, proc: subprocess.Popen[Any]) -> None:
+    deadline = time.monotonic() + 60
+    while pub.get_subscription_count() == 0:
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError('the echo process did not start')
+        time.sleep(0.1)
+
+
+def echo() -> int:
+    """The floor's subscriber: the node's QoS and allocator tuning, no processing."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import Float64MultiArray
+
+    from solid_ros.tools.runtime import tune_allocator, tune_thread_switching
+
+    tune_allocator()
+    tune_thread_switching()
+    rclpy.init()
+    node = Node('solid_latency_echo')
+    pub = node.create_publisher(Float64MultiArray, _ECHO_TOPIC, 10)
+
+    def on_points(msg: PointCloud2) -> None:
+        stamp = msg.header.stamp.sec * NS + msg.header.stamp.nanosec
+        pub.publish(Float64MultiArray(data=[float(stamp)]))
+
+    node.create_subscription(PointCloud2, '/points', on_points,
+                             QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def shutdown(proc: subprocess.Popen[Any] | None, executor: Any, spinner: threading.Thread,
              node: Any) -> None:
     """Stop the node process (SIGINT, then kill) and this process's probe node."""
     import rclpy
 
-    proc.send_signal(signal.SIGINT)
-    try:
-        proc.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        proc.kill()
+    if proc is not None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
     executor.shutdown()
     # A spin still inside rcl at interpreter exit aborts the process ("terminate called
     # without an active exception"): let it return first.
