@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -136,13 +137,17 @@ class Query:
         self.coarse_tree = sg.KdTree(self.coarse)
         if self.coarse.size() >= _MIN_POINTS:
             sg.estimate_covariances(self.coarse, self.coarse_tree, num_neighbors=_NEIGHBOURS)
-        self.ranges = range_image(pts)
         self.structure_first = np.argsort(~self.structure, kind='stable')
 
     @property
     def n_struct(self) -> int:
         """Number of structure points."""
         return int(self.structure.sum())
+
+    @cached_property
+    def ranges(self) -> FloatArray:
+        """Range image of the cloud (computed on first use: most candidates never need it)."""
+        return range_image(self.points)
 
     def keyframe_cloud(self) -> KeyframeCloud:
         """The cloud to store for this scan: float32, structure first."""
@@ -321,13 +326,14 @@ def align_fine(query: Query, source: Source, T_qm: FloatArray,
                      int(res.iterations))
 
 
-@dataclass(frozen=True)
 class Support:
     """How well the two clouds support an alignment.
 
     A candidate point supports the alignment when, mapped into the query frame, its nearest
     query point lies within ``2 * voxel`` and it lies within ``inlier_distance`` of that
-    point's tangent plane.
+    point's tangent plane. The measures the acceptance tests read last (``conflict``,
+    ``spread``, ``patches``) are computed on first access, so a candidate rejected earlier
+    does not pay for them.
 
     Attributes:
         fitness: fraction of all candidate points that support it (ground included).
@@ -341,32 +347,76 @@ class Support:
         information: 6x6 point-to-plane information sum J J^T over all supporting points,
             J = (t x n, n) for a left perturbation of ``T_qm`` (rotation first).
         inliers: number of supporting points.
-        patches: coarse voxels holding supporting points: independent surface patches (the
-            errors of points on one patch are correlated).
-        conflict: free-space conflict, the largest of both directions, each over all points
-            and over the structure points alone: the fraction of one cloud's points (where the
-            other sensor saw a surface in their direction) lying in front of that surface, in
-            space the other sensor saw through. The ground, which aligns anywhere, would
-            dilute a misplaced wall or tree in the fraction over all points.
-        spread: the horizontal constraint left without the object that contributes most,
-            per query structure point.
     """
 
-    fitness: float
-    overlap_match: float
-    overlap_query: float
-    rmse: float
-    constraint: float
-    information: FloatArray
-    inliers: int
-    patches: int
-    conflict: float
-    spread: float
+    def __init__(self, query: Query, source: Source, T_qm: FloatArray,
+                 settings: RegistrationSettings) -> None:
+        T = np.asarray(T_qm, dtype=np.float64)
+        self._query, self._source, self._T, self._settings = query, source, T, settings
+        moved = source.points @ T[:3, :3].T + T[:3, 3]
+        idx, sq = query.tree.batch_nearest_neighbor_search(moved)
+        idx = np.asarray(idx, dtype=np.intp)
+        near = np.asarray(sq) < settings.neighbour_distance ** 2
+        normals = query.normals[idx]
+        plane = np.abs(np.einsum('ij,ij->i', moved - query.points[idx], normals))
+        inlier = near & (plane < settings.inlier_distance)
+        struct_m = np.arange(len(moved)) < source.n_struct
+        n_inl = int(inlier.sum())
+        self.inliers = n_inl
+        self.fitness = n_inl / max(len(moved), 1)
+        self.rmse = float(math.sqrt(float(np.mean(plane[inlier] ** 2)))) if n_inl else math.inf
+        jac = np.hstack([np.cross(moved[inlier], normals[inlier]), normals[inlier]])
+        self.information: FloatArray = jac.T @ jac
+        s_rows = inlier[inlier] & struct_m[inlier]
+        # Horizontal block (x, y, yaw); yaw scaled by a 10 m lever to compare with metres.
+        self._hz = jac[s_rows][:, [3, 4, 2]] * np.array([1.0, 1.0, 0.1])
+        self.constraint = max(float(np.linalg.eigvalsh(self._hz.T @ self._hz)[0])
+                              / max(query.n_struct, 1), 0.0)
+        self._moved, self._inlier, self._s_rows = moved, inlier, s_rows
+        self.overlap_match = int((inlier & struct_m).sum()) / max(int(struct_m.sum()), 1)
+        # Query structure explained by the candidate: query points mapped into the match frame.
+        _, tree = source.fine()
+        back = (query.points[query.structure] - T[:3, 3]) @ T[:3, :3]
+        if len(back):
+            _, sq2 = tree.batch_nearest_neighbor_search(back)
+            self.overlap_query = float(np.mean(np.asarray(sq2) < settings.neighbour_distance ** 2))
+        else:
+            self.overlap_query = 0.0
 
     @property
     def overlap(self) -> float:
         """The smaller of the two structure overlaps."""
         return min(self.overlap_match, self.overlap_query)
+
+    @cached_property
+    def conflict(self) -> float:
+        """Free-space conflict, the largest of both directions, each over all points and over
+        the structure points alone: the fraction of one cloud's points (where the other sensor
+        saw a surface in their direction) lying in front of that surface, in space the other
+        sensor saw through. The ground, which aligns anywhere, would dilute a misplaced wall or
+        tree in the fraction over all points."""
+        query, source, T = self._query, self._source, self._T
+        margin = self._settings.neighbour_distance
+        back = (query.points[query.structure_first] - T[:3, 3]) @ T[:3, :3]
+        return max(free_space_conflict(self._moved, query.ranges, margin, source.n_struct),
+                   free_space_conflict(back, source.ranges, margin, query.n_struct))
+
+    @cached_property
+    def spread(self) -> float:
+        """The horizontal constraint left without the object that contributes most, per query
+        structure point."""
+        points = self._moved[self._inlier][self._s_rows]
+        worst = _without_strongest_object(points, self._hz, self._settings.coarse_voxel)
+        return max(worst / max(self._query.n_struct, 1), 0.0)
+
+    @cached_property
+    def patches(self) -> int:
+        """Coarse voxels holding supporting points: independent surface patches (the errors of
+        points on one patch are correlated)."""
+        if not self.inliers:
+            return 0
+        cells = np.floor(self._moved[self._inlier] / self._settings.coarse_voxel)
+        return len(np.unique(cells.astype(np.int64), axis=0))
 
 
 def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float) -> float:
@@ -398,43 +448,4 @@ def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float)
 def measure_support(query: Query, source: Source, T_qm: FloatArray,
                     settings: RegistrationSettings) -> Support:
     """Measure the support of ``T_qm`` in both directions (see :class:`Support`)."""
-    T = np.asarray(T_qm, dtype=np.float64)
-    moved = source.points @ T[:3, :3].T + T[:3, 3]
-    idx, sq = query.tree.batch_nearest_neighbor_search(moved)
-    idx = np.asarray(idx, dtype=np.intp)
-    near = np.asarray(sq) < settings.neighbour_distance ** 2
-    normals = query.normals[idx]
-    plane = np.abs(np.einsum('ij,ij->i', moved - query.points[idx], normals))
-    inlier = near & (plane < settings.inlier_distance)
-    struct_m = np.arange(len(moved)) < source.n_struct
-    n_inl = int(inlier.sum())
-    rmse = float(math.sqrt(float(np.mean(plane[inlier] ** 2)))) if n_inl else math.inf
-    jac = np.hstack([np.cross(moved[inlier], normals[inlier]), normals[inlier]])
-    info: FloatArray = jac.T @ jac
-    s_rows = inlier[inlier] & struct_m[inlier]
-    js = jac[s_rows]
-    # Horizontal block (x, y, yaw); yaw scaled by a 10 m lever to compare with metres.
-    hz = js[:, [3, 4, 2]] * np.array([1.0, 1.0, 0.1])
-    constraint = float(np.linalg.eigvalsh(hz.T @ hz)[0]) / max(query.n_struct, 1)
-    spread = _without_strongest_object(moved[inlier][s_rows], hz, settings.coarse_voxel)
-    spread /= max(query.n_struct, 1)
-    # Query structure explained by the candidate: query points mapped into the match frame.
-    _, tree = source.fine()
-    back = (query.points[query.structure] - T[:3, 3]) @ T[:3, :3]
-    if len(back):
-        _, sq2 = tree.batch_nearest_neighbor_search(back)
-        overlap_q = float(np.mean(np.asarray(sq2) < settings.neighbour_distance ** 2))
-    else:
-        overlap_q = 0.0
-    n_sm = int(struct_m.sum())
-    cells = np.floor(moved[inlier] / settings.coarse_voxel).astype(np.int64)
-    patches = len(np.unique(cells, axis=0)) if n_inl else 0
-    margin = settings.neighbour_distance
-    order = query.structure_first
-    conflict = max(free_space_conflict(moved, query.ranges, margin, source.n_struct),
-                   free_space_conflict((query.points[order] - T[:3, 3]) @ T[:3, :3],
-                                       source.ranges, margin, query.n_struct))
-    return Support(spread=max(spread, 0.0), fitness=n_inl / max(len(moved), 1),
-                   overlap_match=int((inlier & struct_m).sum()) / max(n_sm, 1),
-                   overlap_query=overlap_q, rmse=rmse, constraint=max(constraint, 0.0),
-                   information=info, inliers=n_inl, patches=patches, conflict=conflict)
+    return Support(query, source, T_qm, settings)

@@ -40,7 +40,9 @@ rejection ``reason``):
    true alignment sits in a basin and is found again, a spurious one slides away. The
    restarts must end within ``verify_max_drift`` metres and ``verify_max_drift_deg`` degrees.
 
-Passing all of them gives ``verified``. The relative pose is ``T = T_mq`` (``p_match = T
+Passing all of them gives ``verified``. A rejected candidate carries the scores of the tests
+it reached (the rest are NaN): the later measures cost the most and most candidates never
+need them. The relative pose is ``T = T_mq`` (``p_match = T
 p_query``), its covariance the Gauss-Newton estimate ``sigma^2 (sum J J^T)^-1`` of the
 point-to-plane problem at the solution, ``sigma`` the inlier RMS (at least 2 cm), inflated
 by the supporting points per occupied coarse voxel (points on one surface patch share their
@@ -222,20 +224,22 @@ class Verifier:
         hyp = coarse.alignment.hypothesis
         fine = align_fine(query, src, coarse.alignment.T_qm, settings)
         T_qm = fine.T_qm
-        sup = measure_support(query, src, T_qm, settings)
-        scores = {'fitness': sup.fitness, 'rmse': sup.rmse, 'overlap': sup.overlap,
-                  'constraint': sup.constraint, 'coarse_overlap': co, 'conflict': sup.conflict,
-                  'spread': sup.spread}
         if not fine.converged:
-            return _rejected('not_converged', T_qm, **scores)
+            return _rejected('not_converged', T_qm, coarse_overlap=co)
+        sup = measure_support(query, src, T_qm, settings)
+        # Scores as far as the tests got: the later ones cost more and a rejection skips them.
+        scores = {'fitness': sup.fitness, 'rmse': sup.rmse, 'overlap': sup.overlap,
+                  'constraint': sup.constraint, 'coarse_overlap': co}
         if not sup.overlap >= cfg.verify_min_overlap:
             return _rejected('overlap', T_qm, **scores)
         if not sup.rmse <= cfg.verify_max_rmse:
             return _rejected('rmse', T_qm, **scores)
+        scores['conflict'] = sup.conflict
         if not sup.conflict <= cfg.verify_max_conflict:
             return _rejected('conflict', T_qm, **scores)
         if not sup.constraint >= cfg.verify_min_constraint:
             return _rejected('constraint', T_qm, **scores)
+        scores['spread'] = sup.spread
         if not (sup.spread >= cfg.verify_min_spread
                 or (sup.overlap >= cfg.verify_single_object_overlap
                     and sup.conflict <= cfg.verify_max_conflict / 2.0)):
