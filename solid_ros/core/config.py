@@ -262,7 +262,7 @@ class SolidConfig(_Schema):
                                        high=5.0, read_only=True)
     verify_hypotheses: int = _p(3, 'Heading hypotheses (best A-SOLiD shifts) tried per '
                                 'candidate', low=1, high=16)
-    verify_min_coarse_overlap: float = _p(0.2, 'Coarse screen: least fraction of coarse '
+    verify_min_coarse_overlap: float = _p(0.25, 'Coarse screen: least fraction of coarse '
                                           'structure points that must align', low=0.0, high=1.0)
     verify_min_overlap: float = _p(0.35, 'Least fraction of structure points supporting the '
                                    'alignment, in both directions', low=0.0, high=1.0)
