@@ -29,6 +29,7 @@ import random
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -183,13 +184,15 @@ def main() -> int:
                 echo_proc.wait(timeout=20)
             while pub.get_subscription_count() > 0:  # the echo's subscription must be gone
                 time.sleep(0.1)
-        proc = subprocess.Popen(node_cmd, env=dict(os.environ), stderr=subprocess.PIPE,
-                                text=True)
+        # The node's log goes to a file: a pipe nobody reads fills up after ~350 log lines
+        # (one per published loop) and then blocks the node.
+        log = tempfile.TemporaryFile(mode='w+')
+        proc = subprocess.Popen(node_cmd, env=dict(os.environ), stderr=log, text=True)
         deadline = time.monotonic() + 60
         while pub.get_subscription_count() == 0:
             if proc.poll() is not None or time.monotonic() > deadline:
-                print('solid_node did not start:', proc.stderr.read() if proc.stderr else '',
-                      file=sys.stderr)
+                log.seek(0)
+                print('solid_node did not start:', log.read(), file=sys.stderr)
                 return 1
             time.sleep(0.1)
         run(10.0, 2.0)  # warm-up (imports, kd-tree, DDS discovery)
