@@ -22,8 +22,9 @@ for a rejection (numbers aside) is logged when it first occurs, repeats at most 
 
 Threading: the subscription callback only decodes (zero-copy) or rejects a cloud and appends
 it to a bounded queue; when the queue is full the oldest waiting cloud is dropped (keep newest)
-and counted as skipped. One worker thread runs the detector and publishes, so the executor is
-never blocked by descriptor computation.
+and counted as skipped. A worker thread describes, searches and stores; a second thread
+verifies keyframes and publishes their loops (with ``verify`` off the worker publishes too), so
+the executor is never blocked by descriptor computation or registration.
 """
 
 from __future__ import annotations
@@ -421,7 +422,8 @@ class SolidNode(Node):
                     self._cv.notify_all()
 
     def _process(self, points: npt.NDArray[np.floating], stamp_ns: int) -> None:
-        """Stage 1: describe, search and store; hand the keyframe to the verification stage."""
+        """Stage 1: describe, search and store; hand the keyframe to the verification stage
+        (or, descriptor only, finish it here)."""
         t0 = time.perf_counter()
         pose = self._pose_for(stamp_ns)
         with self._det_lock:
@@ -436,6 +438,11 @@ class SolidNode(Node):
             self._peers.share(proposal)
         self._stage_ms['describe'].append(proposal.describe_ms)
         self._stage_ms['search'].append(proposal.search_ms)
+        if not self._solid.verify:
+            # Descriptor only: what is left takes well under a millisecond, so it runs here
+            # instead of waiting for the verify thread to wake up.
+            self._verify_and_publish(proposal, pose)
+            return
         with self._cv:
             if len(self._proposals) >= max(_MIN_PROPOSALS, self._cfg.queue_size):
                 self._proposals.popleft()
@@ -467,12 +474,7 @@ class SolidNode(Node):
                 proposal, pose = self._proposals.popleft()
                 self._verifying = True
             try:
-                with self._verify_lock:
-                    detector = self._detector
-                    cands = detector.verify(proposal)
-                    verify_ms = detector.times.verify
-                self._stage_ms['verify'].append(verify_ms)
-                self._publish(cands, pose, proposal, detector)
+                self._verify_and_publish(proposal, pose)
             except Exception as err:  # the thread must survive any bad keyframe
                 self.stats.failed += 1
                 self.get_logger().error(f'verification failed: {type(err).__name__}: {err}',
@@ -481,6 +483,15 @@ class SolidNode(Node):
                 with self._cv:
                     self._verifying = False
                     self._cv.notify_all()
+
+    def _verify_and_publish(self, proposal: Proposal,
+                            pose: npt.NDArray[np.float64] | None) -> None:
+        with self._verify_lock:
+            detector = self._detector
+            cands = detector.verify(proposal)
+            verify_ms = detector.times.verify
+        self._stage_ms['verify'].append(verify_ms)
+        self._publish(cands, pose, proposal, detector)
 
     def _publish(self, cands: Sequence[LoopCandidate], pose: npt.NDArray[np.float64] | None,
                  proposal: Proposal, detector: LoopDetector) -> None:
