@@ -16,7 +16,9 @@ Health (logged as throttled warnings and raised to WARN on /diagnostics while it
 windows are wall-clock seconds): no cloud on the resolved points topic for ``_SILENCE_SEC``
 since start or since the last one; with ``use_odom``, no odometry for as long, or odometry
 whose stamps lie more than ``max(_CLOCK_GAP_SEC, 10 x odom_tolerance_sec)`` from the cloud
-stamps (another clock); clouds rejected in the last ``_SILENCE_SEC``. Each distinct reason
+stamps (another clock); clouds rejected, dropped because processing or verification falls
+behind, or failed with an error in the last ``_SILENCE_SEC`` (their counters stay on
+/diagnostics; the WARN clears once they stop). Each distinct reason
 for a rejection (numbers aside) is logged when it first occurs, repeats at most every
 ``_WARN_THROTTLE_SEC``.
 
@@ -155,6 +157,9 @@ class SolidNode(Node):
         self._last_odom: float | None = None
         self._odom_gap: tuple[float, int] | None = None
         self._rejected_at: deque[float] = deque(maxlen=10_000)
+        # Latest time a cloud was dropped (falling behind) or failed, by kind: a WARN while
+        # recent, not for the rest of the run.
+        self._trouble_at: dict[str, float] = {}
         self._reject_lock = threading.Lock()
         self._reasons: OrderedDict[str, list[float]] = OrderedDict()
         self._last_reason = ''
@@ -269,6 +274,7 @@ class SolidNode(Node):
         with self._cv:
             if len(self._queue) == self._queue.maxlen:
                 self.stats.skipped += 1
+                self._trouble('skipped')
                 self.get_logger().warning(
                     f'processing falls behind: dropped the oldest waiting cloud '
                     f'({self.stats.skipped} skipped so far)',
@@ -315,6 +321,10 @@ class SolidNode(Node):
         if best is None or abs(best[0] - stamp_ns) > tol:
             return None
         return best[1]
+
+    def _trouble(self, kind: str) -> None:
+        with self._reject_lock:
+            self._trouble_at[kind] = time.monotonic()
 
     def _reject(self, reason: str) -> None:
         """Count a rejected cloud; log each distinct reason at once, its repeats throttled."""
@@ -377,9 +387,14 @@ class SolidNode(Node):
             while self._rejected_at and now - self._rejected_at[0] > _SILENCE_SEC:
                 self._rejected_at.popleft()
             recent, reason = len(self._rejected_at), self._last_reason
+            trouble = {k: t for k, t in self._trouble_at.items() if now - t <= _SILENCE_SEC}
         if recent:
             out['rejected'] = (f'{recent} PointCloud2 rejected on {points} in the last '
                                f'{_SILENCE_SEC:.0f} s (latest: {reason})')
+        counts = {'skipped': self.stats.skipped, 'verify_skipped': self.stats.verify_skipped,
+                  'failed': self.stats.failed}
+        for kind, t in trouble.items():
+            out[kind] = _TROUBLE[kind].format(n=counts[kind], ago=now - t)
         return out
 
     def _check_health(self) -> None:
@@ -387,8 +402,8 @@ class SolidNode(Node):
         now = time.monotonic()
         problems = self._problems()
         for kind, text in problems.items():
-            if kind == 'rejected':
-                continue  # _reject logs each reason itself
+            if kind in _SELF_LOGGED:
+                continue  # logged where they happen
             last = self._problems_logged.get(kind)
             if last is None or now - last >= _REPEAT_SEC:
                 self._problems_logged[kind] = now
@@ -414,6 +429,7 @@ class SolidNode(Node):
                 self._reject(str(err))
             except Exception as err:  # the worker must survive any bad scan
                 self.stats.failed += 1
+                self._trouble('failed')
                 self.get_logger().error(f'processing failed: {type(err).__name__}: {err}',
                                         throttle_duration_sec=_WARN_THROTTLE_SEC)
             finally:
@@ -447,6 +463,7 @@ class SolidNode(Node):
             if len(self._proposals) >= max(_MIN_PROPOSALS, self._cfg.queue_size):
                 self._proposals.popleft()
                 self.stats.verify_skipped += 1
+                self._trouble('verify_skipped')
                 self.get_logger().warning(
                     'verification falls behind: dropped the oldest waiting keyframe '
                     f'({self.stats.verify_skipped} so far; its cloud is not stored)',
@@ -477,6 +494,7 @@ class SolidNode(Node):
                 self._verify_and_publish(proposal, pose)
             except Exception as err:  # the thread must survive any bad keyframe
                 self.stats.failed += 1
+                self._trouble('failed')
                 self.get_logger().error(f'verification failed: {type(err).__name__}: {err}',
                                         throttle_duration_sec=_WARN_THROTTLE_SEC)
             finally:
@@ -645,8 +663,7 @@ class SolidNode(Node):
         status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: loop detector',
                                   hardware_id='solid_ros')
         problems = self._problems()
-        status.level = (DiagnosticStatus.WARN if (s.skipped or s.failed or s.verify_skipped
-                                                  or problems) else DiagnosticStatus.OK)
+        status.level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
         status.message = '; '.join([*problems.values(), (
             f'{s.processed} processed, {s.skipped} skipped, {s.rejected} rejected, '
             f'{s.loops} loops')])
@@ -701,6 +718,12 @@ class SolidNode(Node):
         super().destroy_node()
 
 
+_TROUBLE = {
+    'skipped': '{n} PointCloud2 dropped so far: processing falls behind (latest {ago:.0f} s ago)',
+    'verify_skipped': '{n} keyframes dropped so far: verification falls behind (latest '
+                      '{ago:.0f} s ago)',
+    'failed': '{n} clouds failed with an error so far (latest {ago:.0f} s ago; see the log)'}
+_SELF_LOGGED = ('rejected', *_TROUBLE)
 _RECOVERED = {'no_clouds': 'PointCloud2 arriving', 'no_odom': 'odometry arriving',
               'odom_clock': 'odometry stamps match the clouds again'}
 

@@ -42,6 +42,7 @@ from solid_ros.core.config import SolidConfig  # noqa: E402
 from solid_ros.core.detector import LoopDetector  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
 from solid_ros.formats.pointcloud2 import cloud_to_xyz  # noqa: E402
+from solid_ros.ros import node as node_module  # noqa: E402
 from solid_ros.ros.node import SolidNode  # noqa: E402
 
 AVIA = CONFIG_DIR / 'avia.yaml'
@@ -598,6 +599,33 @@ def test_rejected_clouds_warn_and_log_every_distinct_reason(
     # Each reason once, though they came within the throttle period of one another.
     assert len(logged) == 2, logged
     assert 'data has' in logged[0] and "has no field 'z'" in logged[1]
+
+
+def test_a_failed_cloud_warns_while_recent_then_clears(
+        harness: Callable[..., Harness], monkeypatch: pytest.MonkeyPatch) -> None:
+    # One scan fails inside the detector: counted, WARN with the reason, the node goes on;
+    # the WARN ends once failures stop (the counter stays).
+    monkeypatch.setattr(node_module, '_SILENCE_SEC', 3.0)
+    h = harness([Parameter('use_odom', value=False)] + LOOP_EVERY_SCAN, params_file=None)
+    det = h.node._detector
+    real = det.propose
+    calls = [0]
+
+    def propose_failing_once(*args: Any, **kwargs: Any) -> Any:
+        calls[0] += 1
+        if calls[0] == 2:
+            raise RuntimeError('injected failure')
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(det, 'propose', propose_failing_once)
+    scene = _scene(3)
+    h.replay([('points', make_cloud(scene, (i + 1) * 10**9)) for i in range(3)])
+    assert h.node.stats.failed == 1 and h.node.stats.processed == 2
+    h.wait_for(lambda: 'failed' in _problems(h), 'the failure on /diagnostics', 10.0)
+    st = h.status()
+    assert st['level'] == '1' and '1 clouds failed with an error so far' in st['message']
+    h.wait_for(lambda: 'failed' not in _problems(h), 'the failure warning to clear', 10.0)
+    assert h.status()['clouds_failed'] == '1'
 
 
 def test_clouds_without_a_usable_point_are_rejected_not_stored(
