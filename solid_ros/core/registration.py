@@ -29,7 +29,7 @@ from solid_ros.core.errors import SolidError
 from solid_ros.core.geometry import rot_z
 
 __all__ = ['STRUCTURE_MAX_NZ', 'Alignment', 'KeyframeCloud', 'Query', 'RegistrationSettings',
-           'Source', 'Support', 'align_coarse', 'align_fine', 'load_small_gicp', 'measure_support']
+           'Source', 'Support', 'align_coarse', 'align_fine', 'load_small_gicp']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -443,9 +443,3 @@ def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float)
         part = rows[obj == k]
         worst = min(worst, float(np.linalg.eigvalsh(total - part.T @ part)[0]))
     return worst
-
-
-def measure_support(query: Query, source: Source, T_qm: FloatArray,
-                    settings: RegistrationSettings) -> Support:
-    """Measure the support of ``T_qm`` in both directions (see :class:`Support`)."""
-    return Support(query, source, T_qm, settings)

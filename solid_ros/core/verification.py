@@ -42,13 +42,15 @@ rejection ``reason``):
 
 Passing all of them gives ``verified``. A rejected candidate carries the scores of the tests
 it reached (the rest are NaN): the later measures cost the most and most candidates never
-need them. The relative pose is ``T = T_mq`` (``p_match = T
-p_query``), its covariance the Gauss-Newton estimate ``sigma^2 (sum J J^T)^-1`` of the
-point-to-plane problem at the solution, ``sigma`` the inlier RMS (at least 2 cm), inflated
-by the supporting points per occupied coarse voxel (points on one surface patch share their
-error), for a right perturbation ``T exp(delta)`` with ``delta = (tx, ty, tz, rx, ry, rz)`` in
-the query frame (ROS order). It still ignores unmodelled errors (moved objects, sensor
-motion within a scan), so treat it as optimistic: a lower bound a back end may scale.
+need them.
+
+The relative pose is ``T = T_mq`` (``p_match = T p_query``), its covariance the Gauss-Newton
+estimate ``sigma^2 (sum J J^T)^-1`` of the point-to-plane problem at the solution, ``sigma``
+the inlier RMS (at least 2 cm), inflated by the supporting points per occupied coarse voxel
+(points on one surface patch share their error), for a right perturbation ``T exp(delta)`` with
+``delta = (tx, ty, tz, rx, ry, rz)`` in the query frame (ROS order). It still ignores
+unmodelled errors (moved objects, sensor motion within a scan), so treat it as optimistic: a
+lower bound a back end may scale.
 """
 
 from __future__ import annotations
@@ -69,9 +71,9 @@ from solid_ros.core.registration import (
     Query,
     RegistrationSettings,
     Source,
+    Support,
     align_coarse,
     align_fine,
-    measure_support,
 )
 
 __all__ = ['REASONS', 'CoarseResult', 'Verification', 'Verifier', 'registration_settings']
@@ -226,7 +228,7 @@ class Verifier:
         T_qm = fine.T_qm
         if not fine.converged:
             return _rejected('not_converged', T_qm, coarse_overlap=co)
-        sup = measure_support(query, src, T_qm, settings)
+        sup = Support(query, src, T_qm, settings)
         # Scores as far as the tests got: the later ones cost more and a rejection skips them.
         scores = {'fitness': sup.fitness, 'rmse': sup.rmse, 'overlap': sup.overlap,
                   'constraint': sup.constraint, 'coarse_overlap': co}
