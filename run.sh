@@ -31,7 +31,7 @@ case "$cmd" in
     ;;
   test)
     setup
-    exec "$venv/bin/python" -m pytest "$@"
+    SOLID_ROS_FULL_SUITE=1 exec "$venv/bin/python" -m pytest "$@"
     ;;
   *)
     echo "usage: ./run.sh demo [BAG] [options] | ./run.sh test [pytest args]" >&2
