@@ -255,9 +255,11 @@ class Harness:
 
     def close(self) -> None:
         self.executor.shutdown()
+        # The spin thread must be out of its wait set before the nodes go: destroying them
+        # first raced it ('cannot use Destroyable', seen once in CI).
+        self.thread.join(timeout=10.0)
         self.node.destroy_node()
         self.client.destroy_node()
-        self.thread.join(timeout=10.0)
 
 
 @pytest.fixture()
