@@ -82,5 +82,6 @@ def test_save_path_read_only_and_never_replaces_other_files(context: Context,
         assert is_database(text) and not other.exists()
     finally:
         executor.shutdown()
+        thread.join(timeout=10.0)  # out of the wait set before the nodes go
         node.destroy_node()
         client.destroy_node()

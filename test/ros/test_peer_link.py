@@ -123,10 +123,10 @@ class Fleet:
 
     def close(self) -> None:
         self.executor.shutdown()
+        self.thread.join(timeout=10.0)  # out of the wait set before the nodes go
         for node in self.nodes.values():
             node.destroy_node()
         self.client.destroy_node()
-        self.thread.join(timeout=10.0)
 
 
 @pytest.fixture()
