@@ -255,6 +255,10 @@ class SolidConfig(_Schema):
                                   'registration, metres', low=0.05, high=5.0, read_only=True)
     verify_coarse_voxel_size: float = _p(1.5, 'Voxel of the coarse registration of structure '
                                          'points, metres', low=0.1, high=10.0, read_only=True)
+    verify_coarse_max_points: int = _p(250, 'Most coarse structure points of a candidate '
+                                       'registered per heading hypothesis; a denser place is '
+                                       'evenly thinned (bounds the coarse cost)', low=10,
+                                       high=1_000_000, read_only=True)
     verify_max_iterations: int = _p(30, 'Iteration limit of each registration', low=1,
                                     high=1000, read_only=True)
     verify_inlier_distance: float = _p(0.15, 'A point supports an alignment within this distance '

@@ -66,6 +66,8 @@ class RegistrationSettings:
         voxel: voxel size of keyframe clouds and of the fine stage, metres.
         coarse_voxel: voxel size of the coarse (structure only) stage, metres.
         coarse_distance: largest correspondence distance of the coarse stage, metres.
+        coarse_max_points: most coarse points of a candidate (source) in the coarse stage; a
+            denser coarse cloud is thinned to an even subsample of this many.
         max_iterations: iteration limit of each registration.
         inlier_distance: a point supports an alignment when its nearest neighbour in the other
             cloud lies within ``2 * voxel`` and within this distance of that neighbour's
@@ -75,6 +77,7 @@ class RegistrationSettings:
     voxel: float = 0.5
     coarse_voxel: float = 1.5
     coarse_distance: float = 3.0
+    coarse_max_points: int = 250
     max_iterations: int = 30
     inlier_distance: float = 0.15
 
@@ -169,6 +172,12 @@ class Source:
         self.n_struct = int(cloud.n_struct)
         self.usable = len(self.points) >= _MIN_POINTS
         self.coarse = sg.voxelgrid_sampling(self.points[:self.n_struct], settings.coarse_voxel)
+        n = self.coarse.size()
+        if n > settings.coarse_max_points:
+            # Coarse GICP costs in proportion to the source points; an even subsample of a
+            # dense place still lands in the fine stage's basin.
+            keep = np.linspace(0, n - 1, settings.coarse_max_points).round().astype(np.intp)
+            self.coarse = sg.PointCloud(np.ascontiguousarray(self.coarse.points()[keep, :3]))
         if self.coarse.size() >= _MIN_POINTS:
             sg.estimate_covariances(self.coarse, num_neighbors=_NEIGHBOURS)
         self._fine: Any = None

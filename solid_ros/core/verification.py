@@ -11,7 +11,8 @@ rejection ``reason``):
    :mod:`solid_ros.core.registration`) from each heading hypothesis (the best A-SOLiD shifts)
    and keeps the best; fewer than ``verify_min_coarse_overlap`` of its coarse structure points
    land within half a coarse voxel of the query's. This is the cheap screen most false
-   candidates stop at.
+   candidates stop at. A candidate with more than ``verify_coarse_max_points`` coarse points
+   is registered with an even subsample of that many (the cost grows with them).
 4. ``not_converged``: the fine stage (voxelised GICP on all points) did not converge within
    ``verify_max_iterations``.
 5. ``overlap``: fewer than ``verify_min_overlap`` of the structure points support the
@@ -93,6 +94,7 @@ def registration_settings(config: SolidConfig) -> RegistrationSettings:
     return RegistrationSettings(voxel=config.verify_voxel_size,
                                 coarse_voxel=config.verify_coarse_voxel_size,
                                 coarse_distance=2.0 * config.verify_coarse_voxel_size,
+                                coarse_max_points=config.verify_coarse_max_points,
                                 max_iterations=config.verify_max_iterations,
                                 inlier_distance=config.verify_inlier_distance)
 

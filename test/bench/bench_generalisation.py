@@ -21,10 +21,10 @@ errors of the correct loops, and the verification verdicts (``detector.reasons``
 Usage: ``python test/bench/bench_generalisation.py [--sensors hdl64,avia_like]
 [--routes revisits] [--scenes lookalike] [--extras none|all|NAME,...] [--seed 0]
 [--scans N] [--jobs 1] [--dump DIR] [--json FILE]``. The full matrix (16 + 5 cases, about
-15,500 scans, each a keyframe) takes about 30 minutes of CPU (15-20 minutes with ``--jobs
-2``): simulating a 64-beam scan costs about 20 ms, describing and verifying a keyframe
-20-100 ms. ``--dump`` writes every candidate looked at, with its test scores and pose error,
-one CSV per case. Exit status 1 when a case falls short of the goal.
+15,500 scans, each a keyframe) takes about 11 minutes of CPU (about 6 minutes with ``--jobs
+2``) on an idle machine: simulating a 64-beam scan costs about 20 ms, describing and
+verifying a keyframe 20-50 ms. ``--dump`` writes every candidate looked at, with its test
+scores and pose error, one CSV per case. Exit status 1 when a case falls short of the goal.
 """
 
 from __future__ import annotations

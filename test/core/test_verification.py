@@ -15,8 +15,8 @@ from solid_ros.core.descriptor import describe
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.geometry import rpy_matrix
 from solid_ros.core.matching import heading_hypotheses
-from solid_ros.core.registration import KeyframeCloud
-from solid_ros.core.verification import REASONS, Verifier
+from solid_ros.core.registration import KeyframeCloud, Source
+from solid_ros.core.verification import REASONS, Verifier, registration_settings
 from solid_ros.sim import DEMO_SENSORS
 from solid_ros.sim.drive import Drive, DriveConfig
 
@@ -81,6 +81,23 @@ def test_wrong_heading_hypothesis_is_recovered_by_the_next() -> None:
     yaw = math.atan2(ref[1, 0], ref[0, 0])
     res = _verify(_scan(273)[0], _scan(5)[0], [yaw + math.pi, yaw])
     assert res.verified and res.hypothesis == 1  # type: ignore[attr-defined]
+
+
+def test_a_dense_candidate_is_thinned_evenly_for_the_coarse_stage_and_still_verified() -> None:
+    cfg = CFG.replace(verify_coarse_max_points=80)
+    cloud = Verifier(CFG).prepare(_cloud(_scan(5)[0])).keyframe_cloud()
+    uncapped = registration_settings(CFG.replace(verify_coarse_max_points=1_000_000))
+    full = Source(cloud, uncapped).coarse.points()[:, :2]
+    thin = Source(cloud, registration_settings(cfg)).coarse.points()[:, :2]
+    assert len(full) > 2 * 80 and len(thin) == 80
+    # Spread over the whole place, not one corner of it.
+    span_full, span_thin = np.ptp(full, axis=0), np.ptp(thin, axis=0)
+    assert np.all(span_thin > 0.8 * span_full)
+    ref = _truth(273, 5)
+    res = _verify(_scan(273)[0], _scan(5)[0], [math.atan2(ref[1, 0], ref[0, 0]) + 0.05], cfg)
+    assert res.verified  # type: ignore[attr-defined]
+    t_err, r_err = _errors(res.T, ref)  # type: ignore[attr-defined]
+    assert t_err < 0.1 and r_err < 0.3
 
 
 @pytest.mark.parametrize(('q', 'm'), [(273, 120), (290, 60), (150, 20)])
