@@ -287,6 +287,14 @@ class SolidConfig(_Schema):
                                  'this, metres', low=0.0, high=100.0)
     verify_max_drift_deg: float = _p(1.0, 'Consistency: restarts 2 deg off must return within '
                                      'this, degrees', low=0.0, high=180.0)
+    odom_check_drift: float = _p(0.1, 'Loops within this session must agree with its odometry: '
+                                 "the loop's translation may differ from the odometry's by "
+                                 'this fraction of the path driven between the two keyframes, '
+                                 'plus odom_check_slack_m (0 turns the check off)', low=0.0,
+                                 high=100.0)
+    odom_check_slack_m: float = _p(10.0, 'Odometry check: disagreement always allowed, metres '
+                                   '(sensor offset from the odometry frame, descriptor-only '
+                                   'loops)', low=0.0, high=1e6)
     cloud_capacity: int = _p(20000, 'Keyframe clouds kept for verification; the oldest cloud is '
                              'dropped beyond this (its scan stays, unverifiable)', low=0,
                              high=10_000_000, read_only=True)

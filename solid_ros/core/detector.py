@@ -24,6 +24,11 @@ best first, until ``max_candidates`` distinct places (outside each other's
 a distinct place, at most ``max_candidates``. In both modes nothing is published within
 ``min_loop_gap`` queries of the last published loop.
 
+Odometry check (:mod:`solid_ros.core.odometry`): a loop between two keyframes of this session
+that both came with a pose is refused (reason ``'odometry'``) when its translation differs
+from the odometry's by more than ``odom_check_drift`` times the path driven between them plus
+``odom_check_slack_m``; with ``verify`` the next candidate is tried instead.
+
 Unusable clouds: a cloud with no point that is finite and inside the range gate, the FOV clip
 and ``max_distance`` (all NaN, all beyond range, empty, ...) would give an all-zero R-SOLiD
 that never matches, yet take an index and move the keyframe gate and the exclusion window.
@@ -38,7 +43,7 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +63,7 @@ from solid_ros.core.geometry import (
 )
 from solid_ros.core.keyframes import CloudStore
 from solid_ros.core.matching import estimate_yaw, heading_hypotheses
+from solid_ros.core.odometry import OdometryPath, disagreement
 from solid_ros.core.registration import KeyframeCloud
 from solid_ros.core.verification import Verification, Verifier
 
@@ -108,8 +114,9 @@ class LoopCandidate:
         rmse: RMS point-to-plane distance of the supporting points, metres.
         covariance: 6x6 row-major covariance of ``T`` (ROS order x, y, z, roll, pitch, yaw;
             right perturbation in the query sensor frame); NaN unless verified.
-        reason: ``'verified'``, ``'descriptor'`` (accepted without verification) or the
-            verification test that rejected it.
+        reason: ``'verified'``, ``'descriptor'`` (accepted without verification), the
+            verification test that rejected it, or ``'odometry'`` (this session's odometry
+            contradicts it).
         overlap: structure overlap of the alignment (NaN when no fine registration ran).
         conflict: free-space conflict of the alignment (NaN: not measured).
         constraint: horizontal constraint per structure point (NaN: not measured).
@@ -234,6 +241,7 @@ class LoopDetector:
         self._kf_stamp: int | None = None
         self._kf_pose: FloatArray | None = None
         self._last_loop_query: int | None = None
+        self._path = OdometryPath(cfg.capacity)  # path driven up to each own keyframe
         # Where clouds of other robots' keyframes come from (the node asks the owner); it
         # returns the cloud or the reason there is none. None: such candidates stay unverified.
         self.fetch_cloud: CloudFetcher | None = None
@@ -432,6 +440,7 @@ class LoopDetector:
             chosen.append(_Hit(hit, margin, db.a_solid(hit.seq).copy()))
         seq = db.next_seq
         db.add(desc.r_solid, desc.heading, stamp, vec)
+        self._path.add(q_index, vec)
         self.last_descriptor = desc
         self.last_was_keyframe = True
         self._kf_stamp, self._kf_pose = stamp, vec
@@ -489,10 +498,30 @@ class LoopDetector:
             rmse=result.rmse, covariance=cov, reason=result.reason, overlap=result.overlap,
             conflict=result.conflict, constraint=result.constraint, spread=result.spread)
 
+    def _odometry_refuses(self, proposal: Proposal, match: Match, T_mq: FloatArray) -> bool:
+        """Whether this session's odometry contradicts the loop ``T_mq`` (sensor frames, not
+        levelled) from the query to ``match``."""
+        cfg = self._config
+        if (cfg.odom_check_drift <= 0.0 or match.session != cfg.session_id
+                or proposal.pose is None):
+            return False
+        pose_m = self.database.pose(match.seq)
+        path = self._path.between(match.index, proposal.query_index)
+        if pose_m is None or path is None:
+            return False
+        allowed = cfg.odom_check_drift * path + cfg.odom_check_slack_m
+        return disagreement(T_mq, proposal.pose, pose_m) > allowed
+
     def _accept_by_descriptor(self, proposal: Proposal, gap_blocked: bool) -> list[LoopCandidate]:
         mode = self._config.heading_match
-        return [self._candidate(proposal, h, estimate_yaw(proposal.heading, h.heading, mode), None)
-                for h in proposal.hits]
+        out = []
+        for h in proposal.hits:
+            c = self._candidate(proposal, h, estimate_yaw(proposal.heading, h.heading, mode), None)
+            if self._odometry_refuses(proposal, h.match, c.matrix()):
+                c = replace(c, reason='odometry')
+                self.reasons['odometry'] += 1
+            out.append(c)
+        return out
 
     def _accept_by_registration(self, proposal: Proposal,
                                 gap_blocked: bool) -> list[LoopCandidate]:
@@ -546,8 +575,12 @@ class LoopDetector:
                 break  # enough distinct places: the rest stay unverified ('skipped')
             if any(_same_place(hit.match, v, cfg.margin_neighbourhood) for v in verified):
                 continue
-            results[i] = verifier.fine(query, c)
-            if results[i].verified:
+            fine = verifier.fine(query, c)
+            if fine.verified and self._odometry_refuses(proposal, hit.match,
+                                                        self._unlevel(fine.T)):
+                fine = replace(fine, verified=False, reason='odometry', covariance=None)
+            results[i] = fine
+            if fine.verified:
                 verified.append(hit.match)
         out = []
         for i, hit in enumerate(proposal.hits):
@@ -562,12 +595,17 @@ class LoopDetector:
         """Sessions loaded from a database file (their clouds came with it or not at all)."""
         return self._loaded
 
+    def _unlevel(self, T: FloatArray) -> FloatArray:
+        """A pose between levelled frames, expressed between the sensor frames."""
+        if not self._levelled:
+            return T
+        m = np.eye(4)
+        m[:3, :3] = self._mount
+        out: FloatArray = m.T @ T @ m
+        return out
+
     def _unlevel_pose(self, T: FloatArray) -> tuple[float, ...]:
-        if self._levelled:
-            m = np.eye(4)
-            m[:3, :3] = self._mount
-            T = m.T @ T @ m
-        return tuple(float(v) for v in matrix_to_vector(T))
+        return tuple(float(v) for v in matrix_to_vector(self._unlevel(T)))
 
     def _unlevel_cov(self, cov: FloatArray) -> FloatArray:
         if not self._levelled:
@@ -628,6 +666,7 @@ class LoopDetector:
             self.verifier.clear_cache()
         self._kf_stamp = self._kf_pose = None
         self._last_loop_query = None
+        self._path.clear()
         self.last_best = None
         self.last_attempts = []
 

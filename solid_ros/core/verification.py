@@ -41,9 +41,10 @@ rejection ``reason``):
    true alignment sits in a basin and is found again, a spurious one slides away. The
    restarts must end within ``verify_max_drift`` metres and ``verify_max_drift_deg`` degrees.
 
-Passing all of them gives ``verified``. A rejected candidate carries the scores of the tests
-it reached (the rest are NaN): the later measures cost the most and most candidates never
-need them.
+Passing all of them gives ``verified``. The detector may still refuse a verified loop that
+this session's odometry contradicts (``odometry``, see :mod:`solid_ros.core.detector`). A
+rejected candidate carries the scores of the tests it reached (the rest are NaN): the later
+measures cost the most and most candidates never need them.
 
 The relative pose is ``T = T_mq`` (``p_match = T p_query``), its covariance the Gauss-Newton
 estimate ``sigma^2 (sum J J^T)^-1`` of the point-to-plane problem at the solution, ``sigma``
@@ -82,7 +83,7 @@ __all__ = ['REASONS', 'CoarseResult', 'Verification', 'Verifier', 'registration_
 FloatArray = npt.NDArray[np.float64]
 
 REASONS = ('verified', 'no_cloud', 'too_sparse', 'coarse_overlap', 'not_converged', 'overlap',
-           'rmse', 'conflict', 'constraint', 'single_object', 'unstable')
+           'rmse', 'conflict', 'constraint', 'single_object', 'unstable', 'odometry')
 _PROBE_VOXELS = 1.0  # restart offset, in fine voxels (half the correspondence distance)
 _PROBE_DEG = 2.0
 _SIGMA_FLOOR = 0.02

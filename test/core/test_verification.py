@@ -158,14 +158,15 @@ def test_keyframe_cloud_is_structure_first() -> None:
 
 
 def _drive_detector(cfg: SolidConfig, indices: list[int],
-                    transform: FloatArray | None = None) -> tuple[LoopDetector, list[object]]:
+                    transform: FloatArray | None = None,
+                    poses: list[FloatArray] | None = None) -> tuple[LoopDetector, list[object]]:
     det = LoopDetector(cfg)
     published = []
     for k, i in enumerate(indices):
         pts = _scan(i)[0].astype(np.float64)
         if transform is not None:
             pts = pts @ transform.T
-        published += det.process(pts, k * SEC)
+        published += det.process(pts, k * SEC, None if poses is None else poses[k])
     return det, published
 
 
@@ -186,6 +187,45 @@ def test_detector_publishes_verified_pose_and_split_equals_process() -> None:
         out += split.verify(proposal)
     assert out == published
     assert det.times.verify > 0.0 and det.reasons['verified'] == 1
+
+
+LOOP_DRIVE = [5, 40, 80, 120, 273]  # 273 revisits 5
+
+
+def _odometry(jump_m: float) -> list[FloatArray]:
+    """The drive's poses as odometry that jumps ``jump_m`` along x before the revisit."""
+    poses = [_scan(i)[1].copy() for i in LOOP_DRIVE]
+    poses[-1][0, 3] += jump_m
+    return poses
+
+
+def _revisit_loops(published: list[object]) -> list[int]:
+    return [c.match_index for c in published if c.query_index == 4]  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize('verify', [True, False])
+def test_a_loop_the_odometry_contradicts_is_refused(verify: bool) -> None:
+    cfg = CFG.replace(exclude_recent_frames=2, distance_threshold=0.2, num_candidates=3,
+                      verify=verify)
+    # Odometry that agrees: the revisit is published. Without verification the other
+    # candidates (places 70-250 m away) are refused by the odometry alone.
+    det, published = _drive_detector(cfg, LOOP_DRIVE, poses=_odometry(0.0))
+    assert _revisit_loops(published) == [0]
+    others = {c.reason for c in det.last_attempts if c.match_index != 0}
+    assert others <= ({'coarse_overlap', 'overlap', 'conflict'} if verify else {'odometry'})
+    assert det.reasons['odometry'] == 0 or not verify
+    # Odometry 400 m off after about 550 m driven: far beyond 10 % drift plus 10 m of slack.
+    det, published = _drive_detector(cfg, LOOP_DRIVE, poses=_odometry(400.0))
+    assert _revisit_loops(published) == [] and det.reasons['odometry'] >= 1
+    refused = [c for c in det.last_attempts if c.match_index == 0]
+    assert [c.reason for c in refused] == ['odometry'] and not refused[0].verified
+    # The check off, or a drift allowance that covers the jump: published again.
+    for relaxed in (cfg.replace(odom_check_drift=0.0), cfg.replace(odom_check_drift=1.0)):
+        _, published = _drive_detector(relaxed, LOOP_DRIVE, poses=_odometry(400.0))
+        assert _revisit_loops(published) == [0]
+    # Without poses there is nothing to check.
+    _, published = _drive_detector(cfg, LOOP_DRIVE)
+    assert _revisit_loops(published) == [0]
 
 
 def test_mounting_levels_a_tilted_sensor() -> None:
@@ -255,9 +295,10 @@ def test_lookalike_street_through_a_90_degree_clip_is_refused(q: int, m: int) ->
 
 def _published(sensor: str, preset: str, route: str, scene: str,
                scans: list[int]) -> list[tuple[int, int, float, float]]:
-    """(query scan, match scan, translation error, rotation error) of every published loop."""
+    """(query scan, match scan, translation error, rotation error) of every published loop,
+    the geometric tests alone (the simulated odometry is perfect: its check is off)."""
     drive = _demo_drive(sensor, route, scene)
-    det = LoopDetector(SolidConfig.from_yaml(CONFIG_DIR / preset))
+    det = LoopDetector(SolidConfig.from_yaml(CONFIG_DIR / preset).replace(odom_check_drift=0.0))
     out = []
     for i in scans:
         scan = drive.scan(i)
