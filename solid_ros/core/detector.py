@@ -60,6 +60,7 @@ from solid_ros.core.geometry import (
     rot_z,
     rotation_deg,
     rpy_matrix,
+    vector_to_matrix,
 )
 from solid_ros.core.keyframes import CloudStore
 from solid_ros.core.matching import estimate_yaw, heading_hypotheses
@@ -148,12 +149,7 @@ class LoopCandidate:
 
     def matrix(self) -> FloatArray:
         """``T`` as a 4x4 matrix."""
-        from solid_ros.core.geometry import quaternion_to_matrix
-
-        out = np.eye(4)
-        out[:3, :3] = quaternion_to_matrix(*self.pose[3:])
-        out[:3, 3] = self.pose[:3]
-        return out
+        return vector_to_matrix(self.pose)
 
 
 @dataclass(frozen=True)

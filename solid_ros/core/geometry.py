@@ -15,7 +15,7 @@ import numpy.typing as npt
 from solid_ros.core.errors import PoseError, SolidError
 
 __all__ = ['matrix_to_quaternion', 'matrix_to_vector', 'pose_to_vector', 'quaternion_to_matrix',
-           'relative_yaw', 'rot_z', 'rotation_deg', 'rpy_matrix', 'yaw_of']
+           'relative_yaw', 'rot_z', 'rotation_deg', 'rpy_matrix', 'vector_to_matrix', 'yaw_of']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -68,6 +68,16 @@ def matrix_to_vector(T: npt.ArrayLike) -> FloatArray:
     """``(x, y, z, qx, qy, qz, qw)`` of a 4x4 or 3x4 transform (w >= 0)."""
     arr = np.asarray(T, dtype=np.float64)
     return np.concatenate([arr[:3, 3], matrix_to_quaternion(arr[:3, :3])])
+
+
+def vector_to_matrix(vector: npt.ArrayLike) -> FloatArray:
+    """4x4 transform of ``(x, y, z, qx, qy, qz, qw)`` (the inverse of
+    :func:`matrix_to_vector`)."""
+    v = np.asarray(vector, dtype=np.float64).reshape(7)
+    out = np.eye(4)
+    out[:3, :3] = quaternion_to_matrix(*(float(x) for x in v[3:]))
+    out[:3, 3] = v[:3]
+    return out
 
 
 def rot_z(yaw: float) -> FloatArray:

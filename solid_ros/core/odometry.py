@@ -15,20 +15,11 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.geometry import quaternion_to_matrix
+from solid_ros.core.geometry import vector_to_matrix
 
-__all__ = ['OdometryPath', 'disagreement', 'pose_matrix']
+__all__ = ['OdometryPath', 'disagreement']
 
 FloatArray = npt.NDArray[np.float64]
-
-
-def pose_matrix(vector: npt.ArrayLike) -> FloatArray:
-    """4x4 matrix of a pose vector ``(x, y, z, qx, qy, qz, qw)``."""
-    v = np.asarray(vector, dtype=np.float64).reshape(7)
-    out = np.eye(4)
-    out[:3, :3] = quaternion_to_matrix(*(float(x) for x in v[3:]))
-    out[:3, 3] = v[:3]
-    return out
 
 
 def disagreement(T_mq: npt.ArrayLike, pose_query: npt.ArrayLike,
@@ -40,7 +31,7 @@ def disagreement(T_mq: npt.ArrayLike, pose_query: npt.ArrayLike,
         pose_query: odometry pose vector of the query keyframe.
         pose_match: odometry pose vector of the match keyframe.
     """
-    odom = np.linalg.inv(pose_matrix(pose_match)) @ pose_matrix(pose_query)
+    odom = np.linalg.inv(vector_to_matrix(pose_match)) @ vector_to_matrix(pose_query)
     T = np.asarray(T_mq, dtype=np.float64)
     return float(np.linalg.norm(odom[:3, 3] - T[:3, 3]))
 

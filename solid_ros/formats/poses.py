@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import PoseError
-from solid_ros.core.geometry import quaternion_to_matrix
+from solid_ros.core.geometry import vector_to_matrix
 
 __all__ = [
     'PoseError', 'PoseTrack', 'associate', 'load_reference', 'odometry_to_pose',
@@ -157,11 +157,9 @@ def read_tum_poses(path: str | Path) -> tuple[IntArray, FloatArray]:
         vals = _floats(row, path, i + 1, 8)
         stamps[i] = parse_stamp_ns(row[0])
         try:
-            poses[i, :3, :3] = quaternion_to_matrix(*vals[4:8])
+            poses[i] = vector_to_matrix(vals[1:8])
         except PoseError as err:
             raise PoseError(f'{path}:{i + 1}: {err}') from err
-        poses[i, :3, 3] = vals[1:4]
-        poses[i, 3, 3] = 1.0
     _check_increasing(stamps, path, 'pose')
     return stamps, poses
 
@@ -228,10 +226,7 @@ def odometry_to_pose(msg: Any) -> FloatArray:
         vals = [float(v) for v in (p.x, p.y, p.z, q.x, q.y, q.z, q.w)]
     except (AttributeError, TypeError, ValueError) as err:
         raise PoseError(f'not an Odometry message: {err}') from err
-    out = np.eye(4)
-    out[:3, :3] = quaternion_to_matrix(*vals[3:])
-    out[:3, 3] = vals[:3]
-    return out
+    return vector_to_matrix(vals)
 
 
 def associate(query_ns: npt.ArrayLike, ref_ns: npt.ArrayLike,

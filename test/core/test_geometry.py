@@ -10,10 +10,12 @@ import pytest
 from solid_ros.core.errors import PoseError, SolidError
 from solid_ros.core.geometry import (
     matrix_to_quaternion,
+    matrix_to_vector,
     pose_to_vector,
     quaternion_to_matrix,
     relative_yaw,
     rot_z,
+    vector_to_matrix,
     yaw_of,
 )
 
@@ -40,6 +42,14 @@ def test_matrix_to_quaternion_round_trip() -> None:
         back = quaternion_to_matrix(*matrix_to_quaternion(r))
         np.testing.assert_allclose(back, r, atol=1e-9)
     assert matrix_to_quaternion(np.eye(3)) == pytest.approx((0.0, 0.0, 0.0, 1.0))
+
+
+def test_vector_to_matrix_inverts_matrix_to_vector() -> None:
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(0.1, -0.2, 0.3, 0.9)
+    T[:3, 3] = [1.0, -2.0, 3.5]
+    np.testing.assert_allclose(vector_to_matrix(matrix_to_vector(T)), T, atol=1e-12)
+    np.testing.assert_allclose(vector_to_matrix([1, 2, 3, 0, 0, 0, 1])[:3, 3], [1, 2, 3])
 
 
 def test_pose_formats() -> None:

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from solid_ros.core.geometry import matrix_to_vector, rot_z
-from solid_ros.core.odometry import OdometryPath, disagreement, pose_matrix
+from solid_ros.core.geometry import matrix_to_vector, rot_z, vector_to_matrix
+from solid_ros.core.odometry import OdometryPath, disagreement
 
 
 def _pose(x: float, y: float, yaw: float = 0.0) -> np.ndarray:
@@ -42,7 +42,7 @@ def test_path_forgets_the_oldest_beyond_capacity() -> None:
 def test_disagreement_compares_the_loop_with_the_odometry_in_the_match_frame() -> None:
     # Match at (10, 0) facing +y, query at (10, 5) facing -x: odometry T_mq has t = (5, 0).
     pose_m, pose_q = _pose(10.0, 0.0, math.pi / 2), _pose(10.0, 5.0, math.pi)
-    T = np.linalg.inv(pose_matrix(pose_m)) @ pose_matrix(pose_q)
+    T = np.linalg.inv(vector_to_matrix(pose_m)) @ vector_to_matrix(pose_q)
     assert np.allclose(T[:3, 3], [5.0, 0.0, 0.0])
     assert disagreement(T, pose_q, pose_m) == pytest.approx(0.0, abs=1e-9)
     wrong = T.copy()
