@@ -2,10 +2,14 @@
 
 One call per scan, :meth:`LoopDetector.process`, levels the scan (sensor mounting), describes
 it, queries the database for earlier places (the scan itself is added afterwards, so it never
-matches itself), verifies the candidates by registration (``verify``) and returns the loops to
-publish. The same work split in two, :meth:`LoopDetector.propose` (descriptor and database)
-and :meth:`LoopDetector.verify` (registration), lets a node run verification on another thread;
-calling ``verify(propose(...))`` for every scan in order gives exactly what ``process`` gives.
+matches itself), verifies the candidates by registration (``verify``) and returns one
+:class:`ScanResult`: whether the scan became a keyframe, the loops to publish, every candidate
+looked at, the best descriptor match and the stage times. The detector keeps no per-scan
+result of its own, so the node's two threads, the replay and the back end read the same value.
+The same work split in two, :meth:`LoopDetector.propose` (descriptor and database) and
+:meth:`LoopDetector.verify` (registration), lets a node run verification on another thread;
+calling ``verify(propose(...))`` for every kept scan in order gives exactly what ``process``
+gives.
 
 Indices: ``query_index`` is the index of the scan among the keyframes this session stored
 (0, 1, 2, ...; gated-out scans get none). ``match_index`` is the index of the matched scan in
@@ -68,7 +72,8 @@ from solid_ros.core.odometry import OdometryPath, disagreement
 from solid_ros.core.registration import KeyframeCloud
 from solid_ros.core.verification import Verification, Verifier
 
-__all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'StageTimes']
+__all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
+           'StageTimes']
 
 FloatArray = npt.NDArray[np.float64]
 _NAN_COV: tuple[float, ...] = (math.nan,) * 36
@@ -161,13 +166,42 @@ class _Hit:
     heading: npt.NDArray[np.float32]
 
 
-@dataclass
+@dataclass(frozen=True)
 class StageTimes:
-    """Milliseconds per stage of the last verified keyframe (NaN: the stage did not run)."""
+    """Milliseconds per stage of one keyframe (NaN: the stage did not run)."""
 
     describe: float = math.nan
     search: float = math.nan
     verify: float = math.nan
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    """What one scan gave; :meth:`LoopDetector.process` and :meth:`LoopDetector.verify`
+    return it.
+
+    Attributes:
+        stamp_ns: the scan's stamp, integer nanoseconds.
+        keyframe: the scan was kept (described, stored and queried); False: gated out.
+        query_index: its index among this session's keyframes (-1 when gated out).
+        pose: the odometry pose vector ``(x, y, z, qx, qy, qz, qw)`` it came with, if any.
+        loops: loops to publish, best first.
+        attempts: every candidate looked at, published or not, with its reason.
+        best: the nearest stored scan by descriptor, accepted or not (None when none was
+            eligible); offline PR curves need it.
+        times: milliseconds per stage.
+        descriptor: its descriptor (None when gated out or given as a descriptor).
+    """
+
+    stamp_ns: int
+    keyframe: bool = False
+    query_index: int = -1
+    pose: FloatArray | None = None
+    loops: tuple[LoopCandidate, ...] = ()
+    attempts: tuple[LoopCandidate, ...] = ()
+    best: LoopCandidate | None = None
+    times: StageTimes = StageTimes()
+    descriptor: Descriptor | None = None
 
 
 @dataclass
@@ -184,6 +218,8 @@ class Proposal:
         cloud_points: its keyframe cloud points (levelled, gated, clipped, voxelised), or
             None without verification.
         hits: descriptor candidates, nearest first.
+        best: the nearest stored scan by descriptor, accepted or not.
+        descriptor: its descriptor (None when given as a descriptor).
         describe_ms: time spent levelling and describing, milliseconds.
         search_ms: time spent searching and storing the descriptor, milliseconds.
     """
@@ -196,6 +232,8 @@ class Proposal:
     r_solid: FloatArray | None = None
     pose: FloatArray | None = None
     hits: list[_Hit] = field(default_factory=list)
+    best: LoopCandidate | None = None
+    descriptor: Descriptor | None = None
     describe_ms: float = math.nan
     search_ms: float = math.nan
 
@@ -226,13 +264,6 @@ class LoopDetector:
         self._levelled = not np.allclose(self._mount, np.eye(3))
         # The descriptor's gate without the voxel grid (replace() costs about 0.5 ms).
         self._gate_cfg = cfg.replace(voxel_size=0.0)
-        self.last_descriptor: Descriptor | None = None
-        self.last_was_keyframe = False
-        # Best stored match of the last query, accepted or not (offline PR curves need it).
-        self.last_best: LoopCandidate | None = None
-        # Every candidate the last verify() looked at, published or not, with its reason.
-        self.last_attempts: list[LoopCandidate] = []
-        self.times = StageTimes()
         self.reasons: Counter[str] = Counter()  # verification outcomes so far
         self._kf_stamp: int | None = None
         self._kf_pose: FloatArray | None = None
@@ -303,8 +334,7 @@ class LoopDetector:
 
     # ------------------------------------------------------------------------------ per scan
 
-    def process(self, points: npt.ArrayLike, stamp_ns: int,
-                pose: Any = None) -> list[LoopCandidate]:
+    def process(self, points: npt.ArrayLike, stamp_ns: int, pose: Any = None) -> ScanResult:
         """Handle one scan: gate, describe, query, store, verify.
 
         Args:
@@ -314,14 +344,18 @@ class LoopDetector:
                 and stored with the scan.
 
         Returns:
-            Loops to publish, best first (empty for a gated-out scan).
+            The scan's result; ``loops`` are the loops to publish, best first (empty for a
+            gated-out scan).
 
         Raises:
             CloudError: no usable point (see the module docstring); nothing changed.
             SolidError: malformed points or pose.
         """
         proposal = self.propose(points, stamp_ns, pose)
-        return [] if proposal is None else self.verify(proposal)
+        if proposal is None:
+            vec = pose_to_vector(pose) if pose is not None else None
+            return ScanResult(_stamp(stamp_ns), pose=vec)
+        return self.verify(proposal)
 
     def propose(self, points: npt.ArrayLike, stamp_ns: int,
                 pose: Any = None) -> Proposal | None:
@@ -338,10 +372,6 @@ class LoopDetector:
         vec = pose_to_vector(pose) if pose is not None else None
         if not self.is_keyframe(stamp, vec):
             self._check_usable(self._level(points))  # refused alike, kept or not
-            self.last_was_keyframe = False
-            self.last_best = None
-            self.last_attempts = []
-            self.times = StageTimes()
             return None
         t0 = time.perf_counter()
         pts = self._level(points)
@@ -351,12 +381,13 @@ class LoopDetector:
         cloud = self._keyframe_points(pts) if self.verifier is not None else None
         t1 = time.perf_counter()
         proposal = self._propose_descriptor(desc, stamp, vec, cloud)
+        proposal.descriptor = desc
         proposal.describe_ms = (t1 - t0) * 1e3
         proposal.search_ms = (time.perf_counter() - t1) * 1e3
         return proposal
 
     def process_descriptor(self, desc: Descriptor, stamp_ns: int,
-                           pose: Any = None) -> list[LoopCandidate]:
+                           pose: Any = None) -> ScanResult:
         """Like :meth:`process` for an already computed descriptor, without gating.
 
         No keyframe cloud is stored, so with ``verify`` no loop can be verified.
@@ -417,10 +448,10 @@ class LoopDetector:
             return min((o.distance for o in hits if not _same_place(o, hit, hood)),
                        default=math.inf) - hit.distance
 
-        self.last_best = None
+        best = None
         if hits:
             top = hits[0]
-            self.last_best = LoopCandidate(
+            best = LoopCandidate(
                 query_index=q_index, match_index=top.index, query_stamp_ns=stamp,
                 match_stamp_ns=top.stamp_ns, match_session=top.session, distance=top.distance,
                 yaw=estimate_yaw(desc.heading, db.a_solid(top.seq), cfg.heading_match),
@@ -437,17 +468,15 @@ class LoopDetector:
         seq = db.next_seq
         db.add(desc.r_solid, desc.heading, stamp, vec)
         self._path.add(q_index, vec)
-        self.last_descriptor = desc
-        self.last_was_keyframe = True
         self._kf_stamp, self._kf_pose = stamp, vec
         return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
-                        np.asarray(desc.r_solid, dtype=np.float64), vec, chosen)
+                        np.asarray(desc.r_solid, dtype=np.float64), vec, chosen, best)
 
-    def verify(self, proposal: Proposal) -> list[LoopCandidate]:
+    def verify(self, proposal: Proposal) -> ScanResult:
         """Verification stage for one :meth:`propose` result; call in keyframe order.
 
         Stores the keyframe's cloud, verifies the candidates and applies ``max_candidates``
-        and ``min_loop_gap``. ``last_attempts`` lists every candidate looked at.
+        and ``min_loop_gap``; the result's ``attempts`` lists every candidate looked at.
         """
         t0 = time.perf_counter()
         cfg = self._config
@@ -470,10 +499,11 @@ class LoopDetector:
             taken.append(c)
         if taken:
             self._last_loop_query = proposal.query_index
-        self.last_attempts = attempts
-        self.times = StageTimes(proposal.describe_ms, proposal.search_ms,
-                                (time.perf_counter() - t0) * 1e3)
-        return taken
+        times = StageTimes(proposal.describe_ms, proposal.search_ms,
+                           (time.perf_counter() - t0) * 1e3)
+        return ScanResult(proposal.stamp_ns, True, proposal.query_index, proposal.pose,
+                          tuple(taken), tuple(attempts), proposal.best, times,
+                          proposal.descriptor)
 
     def _candidate(self, proposal: Proposal, hit: _Hit, yaw: float,
                    result: Verification | None) -> LoopCandidate:
@@ -663,8 +693,6 @@ class LoopDetector:
         self._kf_stamp = self._kf_pose = None
         self._last_loop_query = None
         self._path.clear()
-        self.last_best = None
-        self.last_attempts = []
 
     def save(self, path: str | Path) -> Path:
         """Save the database (all sessions) and its keyframe clouds atomically; see

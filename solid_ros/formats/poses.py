@@ -19,7 +19,7 @@ from solid_ros.core.errors import PoseError
 from solid_ros.core.geometry import vector_to_matrix
 
 __all__ = [
-    'PoseError', 'PoseTrack', 'associate', 'load_reference', 'odometry_to_pose',
+    'PoseError', 'PoseTrack', 'load_reference', 'odometry_to_pose',
     'parse_stamp_ns', 'read_kitti_poses', 'read_times', 'read_tum_poses',
 ]
 
@@ -227,29 +227,3 @@ def odometry_to_pose(msg: Any) -> FloatArray:
     except (AttributeError, TypeError, ValueError) as err:
         raise PoseError(f'not an Odometry message: {err}') from err
     return vector_to_matrix(vals)
-
-
-def associate(query_ns: npt.ArrayLike, ref_ns: npt.ArrayLike,
-              tolerance_ns: int) -> npt.NDArray[np.intp]:
-    """Index of the nearest reference stamp for every query stamp, -1 beyond tolerance.
-
-    Args:
-        query_ns: (M,) stamps to look up.
-        ref_ns: (N,) reference stamps (any order).
-        tolerance_ns: largest accepted |difference|.
-    """
-    q = np.asarray(query_ns, dtype=np.int64)
-    r = np.asarray(ref_ns, dtype=np.int64)
-    if r.size == 0:
-        return np.full(q.shape, -1, dtype=np.intp)
-    order = np.argsort(r, kind='stable')
-    rs = r[order]
-    pos = np.clip(np.searchsorted(rs, q), 1, len(rs) - 1) if len(rs) > 1 else np.zeros_like(q)
-    left = pos - 1 if len(rs) > 1 else pos
-    dl = np.abs(q - rs[left])
-    dr = np.abs(q - rs[pos])
-    pick = np.where(dr < dl, pos, left)
-    best = np.minimum(dl, dr)
-    out: npt.NDArray[np.intp] = order[pick].astype(np.intp)
-    out[best > tolerance_ns] = -1
-    return out

@@ -506,10 +506,9 @@ class SolidNode(Node):
                             pose: npt.NDArray[np.float64] | None) -> None:
         with self._verify_lock:
             detector = self._detector
-            cands = detector.verify(proposal)
-            verify_ms = detector.times.verify
-        self._stage_ms['verify'].append(verify_ms)
-        self._publish(cands, pose, proposal, detector)
+            result = detector.verify(proposal)
+        self._stage_ms['verify'].append(result.times.verify)
+        self._publish(result.loops, pose, proposal, detector)
 
     def _publish(self, cands: Sequence[LoopCandidate], pose: npt.NDArray[np.float64] | None,
                  proposal: Proposal, detector: LoopDetector) -> None:

@@ -205,7 +205,7 @@ class Drive:
     Example:
         >>> drive = Drive(DriveConfig(seed=1))
         >>> for scan in drive:  # doctest: +SKIP
-        ...     detector.process(scan.points, scan.stamp_ns, scan.pose)
+        ...     detector.process(scan.points, scan.stamp_ns, scan.pose).loops
     """
 
     def __init__(self, config: DriveConfig | None = None) -> None:

@@ -19,7 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
-from solid_ros.formats.poses import associate, read_times
+from solid_ros.core.odometry import nearest_stamp
+from solid_ros.formats.poses import read_times
 from solid_ros.tools.evaluation import relative_yaws
 from solid_ros.tools.replay import ReplayResult, load_config, replay, summary_lines
 from solid_ros.tools.replay import main as replay_main
@@ -56,7 +57,7 @@ def _keyframe_scans(result: ReplayResult, times_path: Path) -> npt.NDArray[np.in
     nearest scan within 1 ms.
     """
     scan_stamps = read_times(times_path)
-    return associate(result.stamps_ns, scan_stamps, 1_000_000)
+    return nearest_stamp(scan_stamps, result.stamps_ns, 1_000_000)
 
 
 def revisit_table(result: ReplayResult, labels_path: Path,

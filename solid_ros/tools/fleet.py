@@ -31,9 +31,10 @@ import numpy.typing as npt
 from solid_ros.core.config import NodeConfig, SolidConfig
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import BagError, ConfigError, SolidError
+from solid_ros.core.odometry import StampedOdometry, nearest_stamp
 from solid_ros.core.registration import KeyframeCloud
 from solid_ros.formats.bags import Bag, CloudScan, select_cloud_topic, select_odom_topic
-from solid_ros.formats.poses import PoseTrack, associate
+from solid_ros.formats.poses import PoseTrack
 from solid_ros.tools.loops import pose_error
 from solid_ros.tools.progress import Progress
 from solid_ros.tools.reports import write_json
@@ -133,6 +134,7 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None, 
             streams.append(_scans(bag, cloud_topic, i))
             result.stamps.append([])
             result.published.append([])
+        sources = [StampedOdometry.from_track(_stamps(t), t.poses, tol, t.source) for t in tracks]
         prog = Progress(total, progress, stream)
         try:
             for stamp, robot, scan in heapq.merge(*streams, key=lambda e: (e[0], e[1])):
@@ -140,12 +142,11 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None, 
                     skipped[robot] += 1
                     prog.update(1, skipped=1)
                     continue
-                track = tracks[robot]
-                k = int(associate(np.asarray([stamp], dtype=np.int64), _stamps(track), tol)[0])
+                paired = sources[robot].pose_for(stamp, scan.points)
                 det = dets[robot]
                 try:
                     proposal = det.propose(scan.points, stamp,
-                                           track.poses[k] if k >= 0 else None)
+                                           paired.pose if paired is not None else None)
                 except SolidError:  # a cloud the core refuses is skipped, as the node does
                     skipped[robot] += 1
                     prog.update(1, skipped=1)
@@ -160,7 +161,7 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None, 
                                                     proposal.r_solid, proposal.heading,
                                                     proposal.pose)
                 result.stamps[robot].append(stamp)
-                result.published[robot].extend(det.verify(proposal))
+                result.published[robot].extend(det.verify(proposal).loops)
         except BaseException:
             prog.clear()
             raise
@@ -169,7 +170,7 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None, 
         for bag in opened:
             bag.close()
     for i, track in enumerate(tracks):
-        idx = associate(np.asarray(result.stamps[i], dtype=np.int64), _stamps(track), tol)
+        idx = nearest_stamp(_stamps(track), result.stamps[i], tol)
         if len(idx) and not (idx >= 0).any():
             raise BagError(f'{bags[i]}: no odometry pose lies within '
                            f'{ncfg.odom_tolerance_sec} s of a cloud stamp')

@@ -29,9 +29,10 @@ import numpy.typing as npt
 from solid_ros.core.config import NodeConfig, SolidConfig, check_parameters, load_parameter_file
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import ConfigError, SolidError
+from solid_ros.core.odometry import StampedOdometry, nearest_stamp
 from solid_ros.core.persistence import check_save_target
 from solid_ros.formats.bags import Bag, select_cloud_topic, select_odom_topic
-from solid_ros.formats.poses import PoseError, PoseTrack, associate, load_reference
+from solid_ros.formats.poses import PoseError, load_reference
 from solid_ros.tools.evaluation import Evaluation, evaluate, recommend_threshold, sweep_table
 from solid_ros.tools.fleet import fleet_summary_lines, replay_fleet, write_fleet_outputs
 from solid_ros.tools.loops import LoopRecord, overlap_sweep, pose_error, score_loops
@@ -204,7 +205,11 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
                             f'{cloud_topic} has {total} clouds; pair them with --times')
         prog = Progress(total, progress, stream)
         tol = int(round(ncfg.odom_tolerance_sec * 1e9))
-        odom_idx_of: dict[int, int] = {}
+        source = None
+        if feed_odom and odom_track is not None:
+            assert odom_track.stamps_ns is not None  # odometry topics are stamped
+            source = StampedOdometry.from_track(odom_track.stamps_ns, odom_track.poses, tol,
+                                                odom_track.source)
         stamps: list[int] = []
         seqs: list[int] = []
         kf_stamps: list[int] = []
@@ -231,12 +236,10 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
                     skipped.append((scan.seq, scan.error or 'undecodable'))
                     prog.update(1, skipped=1)
                     continue
-                pose = None
-                if feed_odom and odom_track is not None:
-                    k = _nearest(odom_track, scan.stamp_ns, tol, odom_idx_of)
-                    pose = odom_track.poses[k] if k >= 0 else None
+                odom = source.pose_for(scan.stamp_ns, scan.points) if source is not None else None
                 try:
-                    cands = detector.process(scan.points, scan.stamp_ns, pose=pose)
+                    res = detector.process(scan.points, scan.stamp_ns,
+                                           pose=None if odom is None else odom.pose)
                 except SolidError as err:  # a cloud the core rejects is skipped like the node
                     skipped.append((scan.seq, str(err)))
                     prog.update(1, skipped=1)
@@ -246,18 +249,18 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
                 detect_ms.append((t2 - t1) * 1e3)
                 stamps.append(scan.stamp_ns)
                 seqs.append(scan.seq)
-                if detector.last_was_keyframe:
+                if res.keyframe:
                     kf_stamps.append(scan.stamp_ns)
                     kf_seq.append(scan.seq)
-                    attempts.append(list(detector.last_attempts))
+                    attempts.append(list(res.attempts))
                     for stage in stage_ms:
-                        stage_ms[stage].append(getattr(detector.times, stage))
-                    top = detector.last_best
+                        stage_ms[stage].append(getattr(res.times, stage))
+                    top = res.best
                     best.append(top)
                     accepted.append(top is not None and any(
                         c.match_index == top.match_index and c.match_session == top.match_session
-                        for c in cands))
-                candidates.extend(cands)
+                        for c in res.loops))
+                candidates.extend(res.loops)
                 prog.update(1)
         except BaseException:
             prog.clear()
@@ -275,7 +278,7 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
         if track.stamps_ns is None:
             idx = np.asarray(kf_seq, dtype=np.intp)
         else:
-            idx = associate(kf_stamp_arr, track.stamps_ns, tol)
+            idx = nearest_stamp(track.stamps_ns, kf_stamp_arr, tol)
         reference = np.full((len(kf_seq), 4, 4), np.nan)
         have = idx >= 0
         reference[have] = track.poses[idx[have]]
@@ -345,13 +348,6 @@ def replay(bag: str | Path, config: SolidConfig | None = None, *,
     if out_dir is not None:
         result.files = _write_outputs(Path(out_dir), result, plots)
     return result
-
-
-def _nearest(track: PoseTrack, stamp: int, tol: int, cache: dict[int, int]) -> int:
-    if stamp not in cache:
-        assert track.stamps_ns is not None
-        cache[stamp] = int(associate([stamp], track.stamps_ns, tol)[0])
-    return cache[stamp]
 
 
 def _records(cfg: SolidConfig, attempts: list[list[LoopCandidate]],

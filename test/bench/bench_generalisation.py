@@ -143,11 +143,11 @@ def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None) -> Outc
              'route': case.route, 'scene': case.scene, **case.drive}
     for scan in simulate(seed=seed, sensor=DEMO_SENSORS[case.sensor], num_scans=scans,
                          **drive):
-        loops = det.process(scan.points, scan.stamp_ns, scan.pose)
-        if det.last_was_keyframe:
+        res = det.process(scan.points, scan.stamp_ns, scan.pose)
+        if res.keyframe:
             poses.append(scan.pose)
-            attempts.append(list(det.last_attempts))
-            published.update(id(c) for c in loops)
+            attempts.append(list(res.attempts))
+            published.update(id(c) for c in res.loops)
     seconds = time.perf_counter() - t0
     ref = np.asarray(poses)
     truth = ground_truth(ref[:, :3, 3], radius=RADIUS, exclude_frames=cfg.exclude_recent_frames)

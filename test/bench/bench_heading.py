@@ -68,10 +68,9 @@ def _detector_matches(scans: Iterable[tuple[np.ndarray, int, np.ndarray]],
     rows = []
     for points, stamp, pose in scans:
         desc = describe(points, cfg)
-        det.process_descriptor(desc, stamp, pose)
+        best = det.process_descriptor(desc, stamp, pose).best
         heads.append(desc.heading)
         poses.append(pose)
-        best = det.last_best
         if best is not None:
             j = best.match_index
             if np.linalg.norm(pose[:3, 3] - poses[j][:3, 3]) < radius:

@@ -66,7 +66,7 @@ def bench_scaling(n: int) -> None:
         t0 = time.perf_counter()
         desc = describe(scan.points, det.config)
         t1 = time.perf_counter()
-        loops += bool(det.process_descriptor(desc, scan.stamp_ns, scan.pose))
+        loops += bool(det.process_descriptor(desc, scan.stamp_ns, scan.pose).loops)
         t2 = time.perf_counter()
         desc_ms[k], query_ms[k] = (t1 - t0) * 1e3, (t2 - t1) * 1e3
         if (k + 1) % 1000 == 0:

@@ -65,11 +65,11 @@ def run(name: str, clouds: list[np.ndarray], preset: str) -> tuple[str, float, f
     verify, describe, search = [], [], []
     t0 = time.perf_counter()
     for i, pts in enumerate(clouds):
-        det.process(pts, i * 100_000_000)
-        if det.last_was_keyframe:
-            verify.append(det.times.verify)
-            describe.append(det.times.describe)
-            search.append(det.times.search)
+        res = det.process(pts, i * 100_000_000)
+        if res.keyframe:
+            verify.append(res.times.verify)
+            describe.append(res.times.describe)
+            search.append(res.times.search)
     wall = time.perf_counter() - t0
     v = np.asarray(verify[cfg.exclude_recent_frames:])  # keyframes that have candidates
     pts = np.mean([len(c.points) for _, c in det.clouds.items()])

@@ -39,7 +39,7 @@ def _cfg(**kw: object) -> SolidConfig:
 
 
 def _run(det: LoopDetector, clouds: list[npt.NDArray[np.float64]]) -> list[list[LoopCandidate]]:
-    return [det.process(c, i * SEC) for i, c in enumerate(clouds)]
+    return [list(det.process(c, i * SEC).loops) for i, c in enumerate(clouds)]
 
 
 def test_revisit_is_found_with_fields_and_yaw() -> None:
@@ -130,8 +130,7 @@ def test_keyframe_gating_by_pose() -> None:
 
     kept = []
     for i, (x, yaw) in enumerate([(0, 0), (0.5, 0), (1.0, 0), (1.2, 10), (1.2, 25), (1.2, 26)]):
-        det.process(cloud, i * SEC, pose(x, yaw))
-        kept.append(det.last_was_keyframe)
+        kept.append(det.process(cloud, i * SEC, pose(x, yaw)).keyframe)
     assert kept == [True, False, True, False, True, False]
     stored = det.database.export_arrays()['poses']
     assert stored.shape == (3, 7) and stored[1, 0] == pytest.approx(1.0)
@@ -146,8 +145,7 @@ def _state(det: LoopDetector) -> tuple[object, ...]:
     """Everything a scan can change, for comparing before and after a refusal."""
     db = det.database.export_arrays()
     return (det.num_keyframes, det.database.size, det.database.next_seq,
-            id(det.last_descriptor), det.last_was_keyframe, det.last_best,
-            list(det.last_attempts), repr(det.times), dict(det.reasons), len(det.clouds),
+            dict(det.reasons), len(det.clouds),
             {k: np.asarray(v).tobytes() for k, v in db.items()})
 
 
@@ -180,8 +178,7 @@ def test_clouds_without_a_usable_point_are_refused_and_change_nothing(verify: bo
         _refused(det, cloud, SEC // 2)  # would be gated out
         _refused(det, cloud, 5 * SEC)  # would be a keyframe
     # The gate still counts from the stored scan, not from a refused one.
-    det.process(place(1), SEC)
-    assert det.last_was_keyframe and det.num_keyframes == 2
+    assert det.process(place(1), SEC).keyframe and det.num_keyframes == 2
     # Still refused when the cloud has some usable-looking values in other columns.
     with pytest.raises(CloudError):
         det.process(np.column_stack([bad['all NaN'], np.ones(1200)]), 3 * SEC)
@@ -238,8 +235,9 @@ def _run_mixed(det: LoopDetector, scans: list[tuple[npt.NDArray[np.floating], in
                 det.process(cloud, stamp, pose)
             refused += 1
             continue
-        loops.append([repr(c) for c in det.process(cloud, stamp, pose)])
-        kept.append(det.last_was_keyframe)
+        res = det.process(cloud, stamp, pose)
+        loops.append([repr(c) for c in res.loops])
+        kept.append(res.keyframe)
     return loops, kept, refused
 
 
@@ -307,7 +305,7 @@ def test_hku1_revisit_is_found(shared_data: Path) -> None:
                                              exclude_recent_frames=50))
     found = []
     for cloud, stamp, pose in zip(clouds, stamps, poses):
-        found += det.process(cloud, stamp, pose)
+        found += det.process(cloud, stamp, pose).loops
     assert det.num_keyframes == 314
     loop = [c for c in found if 274 <= c.query_index <= 313]
     correct = [c for c in loop
@@ -327,9 +325,9 @@ def test_heading_match_is_runtime_tunable_and_used_for_the_yaw() -> None:
         det = LoopDetector(cfg)
         det.process(stored, 0)
         det.reconfigure(cfg.replace(heading_match=mode))  # not read-only
-        det.process(query, SEC)
-        assert det.last_best is not None and det.last_best.match_index == 0
-        results[mode] = det.last_best.yaw
+        best = det.process(query, SEC).best
+        assert best is not None and best.match_index == 0
+        results[mode] = best.yaw
         want = estimate_yaw(describe(query, cfg).heading, describe(stored, cfg).heading, mode)
         assert results[mode] == pytest.approx(want, abs=1e-6)  # stored as float32
     assert results['full'] != pytest.approx(results['overlap'], abs=1e-6)
@@ -340,9 +338,36 @@ def test_heading_match_is_runtime_tunable_and_used_for_the_yaw() -> None:
 def test_stamps_outside_int64_are_solid_errors(stamp: object) -> None:
     det = LoopDetector(SolidConfig().replace(exclude_recent_sec=1e9, exclude_recent_frames=0))
     det.process(place(0), 2**63 - 1)
-    det.process(place(0), -(2**63))  # both ends of int64 are fine
+    desc = det.process(place(0), -(2**63)).descriptor  # both ends of int64 are fine
+    assert desc is not None
     with pytest.raises(SolidError, match='stamp'):
         det.process(place(1), stamp)  # type: ignore[arg-type]
     with pytest.raises(SolidError, match='stamp'):
-        det.process_descriptor(det.last_descriptor, stamp)  # type: ignore[arg-type]
+        det.process_descriptor(desc, stamp)  # type: ignore[arg-type]
     assert det.database.size == 2
+
+
+def _at(x: float) -> npt.NDArray[np.float64]:
+    p = np.eye(4)
+    p[0, 3] = x
+    return p
+
+
+def test_each_scan_returns_one_result_and_the_detector_keeps_none() -> None:
+    det = LoopDetector(_cfg(keyframe_min_sec=1.0))
+    first = det.process(place(0), 0, _at(0.0))
+    assert first.keyframe and first.query_index == 0 and first.loops == ()
+    assert first.descriptor is not None and first.pose is not None
+    assert math.isfinite(first.times.describe) and math.isnan(
+        LoopDetector(_cfg()).process_descriptor(first.descriptor, 0).times.describe)
+    gated = det.process(place(0), SEC // 2, _at(0.1))
+    assert not gated.keyframe and gated.query_index == -1 and gated.best is None
+    assert gated.stamp_ns == SEC // 2 and gated.pose is not None and gated.pose[0] == 0.1
+    for k in range(1, 4):
+        det.process(place(k), k * SEC)
+    again = det.process(rotz(place(1), 30.0), 4 * SEC)
+    assert again.keyframe and again.query_index == 4
+    assert [c.match_index for c in again.loops] == [1]
+    assert again.best is not None and again.best.match_index == 1
+    assert again.attempts and again.loops[0] in again.attempts
+    assert not any(name.startswith('last_') for name in vars(det))  # no per-scan state

@@ -73,7 +73,7 @@ def test_new_session_queries_the_saved_one(tmp_path: Path) -> None:
         first.process(place(i), i * SEC)
     first.save(tmp_path / 'run1.npz')
     second = LoopDetector.load(tmp_path / 'run1.npz', cfg.replace(session_id=7))
-    (cand,) = second.process(place(3), 0)
+    (cand,) = second.process(place(3), 0).loops
     assert (cand.query_index, cand.match_index, cand.match_session) == (0, 3, 0)
     second.process(place(9), SEC)
     second.save(tmp_path / 'run2.npz')
@@ -365,7 +365,7 @@ def test_keyframe_clouds_round_trip_and_verify_a_later_session(tmp_path: Path) -
         c.points.tolist() for _, c in first.clouds.items()]
     assert [c.n_struct for _, c in second.clouds.items()] == [
         c.n_struct for _, c in first.clouds.items()]
-    (loop,) = second.process(_sim_points(273), 10 * 1_000_000_000)  # a revisit of scan 5
+    (loop,) = second.process(_sim_points(273), 10 * 1_000_000_000).loops  # a revisit of scan 5
     assert (loop.match_session, loop.match_index, loop.verified) == (0, 0, True)
 
     # The same file as format version 1 (no clouds): loads, but nothing can be verified.
@@ -380,5 +380,6 @@ def test_keyframe_clouds_round_trip_and_verify_a_later_session(tmp_path: Path) -
     _npz(tmp_path / 'v1.npz', members)
     old = LoopDetector.load(tmp_path / 'v1.npz', cfg.replace(session_id=1))
     assert old.database.size == 3 and len(old.clouds) == 0
-    assert old.process(_sim_points(273), 10 * 1_000_000_000) == []
-    assert [a.reason for a in old.last_attempts][:1] == ['no_cloud']
+    res = old.process(_sim_points(273), 10 * 1_000_000_000)
+    assert res.loops == ()
+    assert [a.reason for a in res.attempts][:1] == ['no_cloud']

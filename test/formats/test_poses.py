@@ -12,7 +12,6 @@ import pytest
 from solid_ros.core.geometry import rot_z
 from solid_ros.formats.poses import (
     PoseError,
-    associate,
     load_reference,
     odometry_to_pose,
     parse_stamp_ns,
@@ -107,14 +106,6 @@ def test_odometry_to_pose() -> None:
     np.testing.assert_allclose(pose[:3, 3], [1.0, -2.0, 0.5])
     with pytest.raises(PoseError, match='not an Odometry'):
         odometry_to_pose(SimpleNamespace())
-
-
-def test_associate_nearest_within_tolerance() -> None:
-    ref = np.array([300, 100, 200], dtype=np.int64)
-    got = associate([99, 151, 260, 1000, 100], ref, tolerance_ns=50)
-    assert got.tolist() == [1, 2, 0, -1, 1]
-    assert associate([5], np.array([], dtype=np.int64), 10).tolist() == [-1]
-    assert associate([5, 40], np.array([0]), 10).tolist() == [0, -1]
 
 
 @pytest.mark.parametrize('row, words', [

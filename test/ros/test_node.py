@@ -135,7 +135,7 @@ def offline(messages: list[tuple[str, Any]], config: SolidConfig,
         if kind != 'points':
             continue
         stamp = stamp_of(m)
-        for c in det.process(cloud_to_xyz(m), stamp, pose=poses.get(stamp)):
+        for c in det.process(cloud_to_xyz(m), stamp, pose=poses.get(stamp)).loops:
             found.append((c.query_index, c.match_index, c.query_stamp_ns, c.match_stamp_ns,
                           c.match_session))
     return found

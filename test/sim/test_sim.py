@@ -274,7 +274,7 @@ def _recall(drive: Drive, scans: list[SimScan], fov: float,
                                    heading_weight=heading_weight))
     top: dict[int, LoopCandidate] = {}
     for scan in scans:
-        found = det.process(scan.points, scan.stamp_ns, scan.pose)
+        found = det.process(scan.points, scan.stamp_ns, scan.pose).loops
         if found:
             top[scan.index] = found[0]
     out: dict[str, tuple[float, list[float]]] = {}

@@ -72,7 +72,7 @@ def _direct(scans: list[tuple[np.ndarray, int, np.ndarray]], cfg: SolidConfig) -
     det = LoopDetector(cfg)
     out = []
     for pts, stamp, pose in scans:
-        for c in det.process(pts[:, :3], stamp, pose=pose):
+        for c in det.process(pts[:, :3], stamp, pose=pose).loops:
             out.append((c.query_index, c.match_index, c.query_stamp_ns, c.match_stamp_ns,
                         c.distance, c.yaw))
     return out
@@ -368,7 +368,7 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
         poses = dict(zip(odom.stamps_ns.tolist(), odom.poses))
         for scan in bag.clouds('/points'):
             assert scan.points is not None
-            want += det.process(scan.points, scan.stamp_ns, pose=poses.get(scan.stamp_ns))
+            want += det.process(scan.points, scan.stamp_ns, pose=poses.get(scan.stamp_ns)).loops
     assert result.candidates == want
     # The preset's keyframe gating (0.5 m, 10 deg on the bag's odometry) keeps fewer scans.
     assert result.keyframes == det.num_keyframes < 314
