@@ -3,7 +3,8 @@
 Every setting is a dataclass field whose metadata carries its description, allowed range or
 choices and whether it is read-only at runtime (it changes descriptor shape or values). The ROS
 node declares its parameters from this metadata, the YAML file holds the same keys under
-``<node>: ros__parameters:``, and the offline tools load that YAML with :meth:`from_yaml`.
+``<node>: ros__parameters:``, and the offline tools load that YAML with :meth:`from_yaml`
+(:mod:`solid_ros.core.paramfile` reads the file's layout; this module checks the values).
 """
 
 from __future__ import annotations
@@ -12,13 +13,13 @@ import dataclasses
 import hashlib
 import json
 import math
-import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from solid_ros.core.errors import ConfigError
+from solid_ros.core.paramfile import load_yaml_parameters
 
 __all__ = ['ParamSpec', 'SolidConfig', 'NodeConfig', 'check_parameters', 'load_parameter_file',
            'load_yaml_parameters', 'param_specs', 'type_message']
@@ -360,63 +361,6 @@ def _all_names() -> set[str]:
     return {s.name for s in SolidConfig.specs()} | {s.name for s in NodeConfig.specs()}
 
 
-def load_yaml_parameters(path: str | Path, node_name: str = 'solid_node') -> dict[str, Any]:
-    """Read the merged ``ros__parameters`` of ``node_name`` (and ``/**``) from a YAML file.
-
-    Blocks apply as rcl applies them: a key names a node relative to the root namespace
-    (``solid_node``, ``/solid_node``, nested ``ns: solid_node:``) or matches it with the
-    wildcards ``*`` (one name) and ``**`` (any names), e.g. ``/**``. Values are returned
-    as written; :func:`check_parameters` validates them.
-
-    Args:
-        path: the parameter file.
-        node_name: node name or fully qualified name (``/ns/name``).
-
-    Raises:
-        ConfigError: one line naming the file: missing or unreadable, not UTF-8 text, not
-            YAML, not in ROS 2 parameter layout, or without a block for the node.
-    """
-    import yaml
-
-    try:
-        blob = Path(path).read_bytes()
-    except OSError as err:
-        raise ConfigError(f'{path}: cannot read parameter file: {err.strerror or err}') from err
-    try:
-        text = blob.decode('utf-8')
-    except UnicodeDecodeError as err:
-        raise ConfigError(f'{path}: not a parameter file: byte 0x{blob[err.start]:02x} at '
-                          f'offset {err.start} is not UTF-8 text') from err
-    try:
-        doc = yaml.safe_load(text)
-    except RecursionError as err:
-        raise ConfigError(f'{path}: not valid YAML: nested too deeply') from err
-    except (yaml.YAMLError, ValueError, TypeError, OverflowError) as err:
-        # PyYAML raises more than YAMLError for odd scalars (dates) and deep nesting.
-        where = ' '.join(str(err).replace(' in "<unicode string>",', '').split())
-        raise ConfigError(f'{path}: not valid YAML: {_shorten(where)}') from err
-    if not isinstance(doc, dict):
-        kind = 'empty' if doc is None else f'a YAML {type(doc).__name__}'
-        raise ConfigError(f'{path}: expected "<node>: ros__parameters:" at the top level, '
-                          f'the file is {kind}')
-    fqn = '/' + node_name.strip('/')
-    params: dict[str, Any] = {}
-    found = False
-    names = []
-    for name, block in _node_blocks(doc):
-        names.append(name)
-        if not _name_matches(name, fqn):
-            continue
-        if not isinstance(block, dict) or not isinstance(block.get('ros__parameters'), dict):
-            raise ConfigError(f'{path}: block {name!r} has no ros__parameters mapping')
-        params.update(_flatten(block['ros__parameters']))
-        found = True
-    if not found:
-        raise ConfigError(f'{path}: no ros__parameters block for node {fqn!r} '
-                          f'(blocks: {", ".join(names[:10]) or "none"})')
-    return params
-
-
 def check_parameters(values: Mapping[str, Any], source: str | Path | None = None) -> None:
     """Check parameter values as the node receives them from a file or the command line.
 
@@ -470,44 +414,3 @@ def type_message(spec: ParamSpec, value: Any) -> str:
     if spec.type is float and isinstance(value, int) and not isinstance(value, bool):
         msg += f' (write {float(value)!r}: ROS 2 rejects an integer for a double parameter)'
     return msg
-
-
-def _shorten(text: str) -> str:
-    return text if len(text) <= 300 else text[:297] + '...'
-
-
-def _node_blocks(doc: Mapping[Any, Any], prefix: str = '') -> list[tuple[str, Any]]:
-    """``(name, block)`` for every node block; nested namespace mappings are joined by '/'."""
-    out: list[tuple[str, Any]] = []
-    for key, value in doc.items():
-        name = f'{prefix}/{str(key).strip("/")}'
-        if isinstance(value, dict) and 'ros__parameters' not in value and value and all(
-                isinstance(v, dict) for v in value.values()):
-            out.extend(_node_blocks(value, name))  # a namespace level
-        else:
-            out.append((name, value))
-    return out
-
-
-def _name_matches(pattern: str, fqn: str) -> bool:
-    """rcl's node-name wildcards: ``**`` spans any names (also none), ``*`` one name."""
-    if '*' not in pattern:
-        return pattern == fqn
-    rx = ''
-    for token in pattern.strip('/').split('/'):
-        if token == '**':
-            rx += '(?:/[^/]+)*'
-        else:
-            rx += '/' + '[^/]*'.join(re.escape(t) for t in token.split('*'))
-    return re.fullmatch(rx, fqn) is not None
-
-
-def _flatten(block: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in block.items():
-        name = f'{prefix}{key}'
-        if isinstance(value, dict):
-            out.update(_flatten(value, name + '.'))
-        else:
-            out[name] = value
-    return out

@@ -180,7 +180,7 @@ class DescriptorDatabase:
         """Whether scan ``seq`` is still stored (not evicted)."""
         return self.oldest_seq <= seq < self._next
 
-    def a_solid(self, seq: int) -> npt.NDArray[np.float32]:
+    def heading(self, seq: int) -> npt.NDArray[np.float32]:
         """Heading signature (A-SOLiD unless heading_weight is range), unit-normalised."""
         row: npt.NDArray[np.float32] = self._a[self.slot(seq)]
         return row
@@ -204,13 +204,13 @@ class DescriptorDatabase:
         return int(self._index[s]), int(self._session[s]), int(self._stamp[s])
 
     # ---------------------------------------------------------------------------- insert
-    def add(self, r_solid: npt.ArrayLike, a_solid: npt.ArrayLike, stamp_ns: int,
+    def add(self, r_solid: npt.ArrayLike, heading: npt.ArrayLike, stamp_ns: int,
             pose: Sequence[float] | npt.ArrayLike | None = None) -> int:
         """Store one scan of the current session, evicting the oldest when full.
 
         Args:
             r_solid: R-SOLiD, shape (N_r,) (need not be normalised).
-            a_solid: A-SOLiD, shape (N_a,).
+            heading: heading signature (:attr:`Descriptor.heading`), shape (N_a,).
             stamp_ns: stamp in integer nanoseconds.
             pose: optional ``(x, y, z, qx, qy, qz, qw)``.
 
@@ -219,7 +219,7 @@ class DescriptorDatabase:
         """
         index = self._session_count
         self._own.append(self._next)
-        self._put(r_solid, a_solid, int(stamp_ns), index, self.session_id, pose)
+        self._put(r_solid, heading, int(stamp_ns), index, self.session_id, pose)
         self._session_count += 1
         if self._last_stamp is not None and stamp_ns < self._last_stamp:
             self._monotone = False
@@ -240,7 +240,7 @@ class DescriptorDatabase:
         return own[k] if 0 <= k < len(own) else None
 
     def add_foreign(self, session: int, index: int, r_solid: npt.ArrayLike,
-                    a_solid: npt.ArrayLike, stamp_ns: int,
+                    heading: npt.ArrayLike, stamp_ns: int,
                     pose: Sequence[float] | npt.ArrayLike | None = None) -> int:
         """Store a scan of another session (a peer robot's keyframe) while this one runs.
 
@@ -249,7 +249,7 @@ class DescriptorDatabase:
         Args:
             session: its session (robot) id; not this database's ``session_id``.
             index: its index within that session.
-            r_solid, a_solid, stamp_ns, pose: as for :meth:`add`.
+            r_solid, heading, stamp_ns, pose: as for :meth:`add`.
 
         Returns:
             Its sequence number.
@@ -260,14 +260,14 @@ class DescriptorDatabase:
         if int(session) == self.session_id:
             raise DatabaseError(f"session {session} is this database's own session id")
         seq = self._next
-        self._put(r_solid, a_solid, int(stamp_ns), int(index), int(session), pose)
+        self._put(r_solid, heading, int(stamp_ns), int(index), int(session), pose)
         self._maybe_rebuild()
         return seq
 
-    def _put(self, r_solid: npt.ArrayLike, a_solid: npt.ArrayLike, stamp_ns: int, index: int,
+    def _put(self, r_solid: npt.ArrayLike, heading: npt.ArrayLike, stamp_ns: int, index: int,
              session: int, pose: Sequence[float] | npt.ArrayLike | None) -> None:
         r = np.asarray(r_solid, dtype=np.float64).ravel()
-        a = np.asarray(a_solid, dtype=np.float64).ravel()
+        a = np.asarray(heading, dtype=np.float64).ravel()
         if r.shape != (self.num_range,) or a.shape != (self.num_angle,):
             raise DatabaseError(f'descriptor shape ({r.shape[0]}, {a.shape[0]}) does not match '
                                 f'the database ({self.num_range}, {self.num_angle})')
@@ -466,8 +466,9 @@ class DescriptorDatabase:
     def export_arrays(self) -> dict[str, npt.NDArray[np.generic]]:
         """Return the stored scans, oldest first, as plain arrays (for saving).
 
-        Keys: ``r_solid`` (n, N_r) float32 unit (zeros for empty scans), ``a_solid`` (n, N_a)
-        float32, ``stamps_ns`` int64, ``indices`` int64, ``sessions`` int32, ``poses`` (n, 7)
+        Keys: ``r_solid`` (n, N_r) float32 unit (zeros for empty scans), ``a_solid`` (n,
+        N_a) float32 (the heading signature; the file key keeps its first name),
+        ``stamps_ns`` int64, ``indices`` int64, ``sessions`` int32, ``poses`` (n, 7)
         float32 (NaN rows without pose).
         """
         slots = np.arange(self.oldest_seq, self._next, dtype=np.int64) % self.capacity

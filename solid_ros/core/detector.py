@@ -69,6 +69,7 @@ from solid_ros.core.geometry import (
 from solid_ros.core.keyframes import CloudStore
 from solid_ros.core.matching import estimate_yaw, heading_hypotheses
 from solid_ros.core.odometry import OdometryPath, disagreement
+from solid_ros.core.reasons import Reason
 from solid_ros.core.registration import KeyframeCloud
 from solid_ros.core.verification import Verification, Verifier
 
@@ -77,8 +78,9 @@ __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanRes
 
 FloatArray = npt.NDArray[np.float64]
 _NAN_COV: tuple[float, ...] = (math.nan,) * 36
-# (session, index, stamp_ns) of a peer's keyframe -> its cloud, or why there is none.
-CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | str']
+# (robot = its session id, index, stamp_ns) of a peer's keyframe -> its cloud, or the reason
+# there is none.
+CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | Reason']
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 _INT64 = (-(2**63), 2**63 - 1)
@@ -142,7 +144,7 @@ class LoopCandidate:
     fitness: float = math.nan
     rmse: float = math.nan
     covariance: tuple[float, ...] = _NAN_COV
-    reason: str = 'descriptor'
+    reason: Reason = 'descriptor'
     overlap: float = math.nan
     conflict: float = math.nan
     constraint: float = math.nan
@@ -454,7 +456,7 @@ class LoopDetector:
             best = LoopCandidate(
                 query_index=q_index, match_index=top.index, query_stamp_ns=stamp,
                 match_stamp_ns=top.stamp_ns, match_session=top.session, distance=top.distance,
-                yaw=estimate_yaw(desc.heading, db.a_solid(top.seq), cfg.heading_match),
+                yaw=estimate_yaw(desc.heading, db.heading(top.seq), cfg.heading_match),
                 margin=margin_of(top),
                 reason='best')
         chosen = []
@@ -464,7 +466,7 @@ class LoopDetector:
             margin = margin_of(hit)
             if cfg.min_margin > 0.0 and margin < cfg.min_margin:
                 continue
-            chosen.append(_Hit(hit, margin, db.a_solid(hit.seq).copy()))
+            chosen.append(_Hit(hit, margin, db.heading(hit.seq).copy()))
         seq = db.next_seq
         db.add(desc.r_solid, desc.heading, stamp, vec)
         self._path.add(q_index, vec)
@@ -555,7 +557,7 @@ class LoopDetector:
         assert verifier is not None
         cfg = self._config
         clouds: list[KeyframeCloud | None] = []
-        fetched: dict[int, str] = {}
+        fetched: dict[int, Reason] = {}
         for i, h in enumerate(proposal.hits):
             cloud = self.clouds.get(h.match.seq)
             if (cloud is None and self.fetch_cloud is not None and not gap_blocked
@@ -643,21 +645,21 @@ class LoopDetector:
 
     # -------------------------------------------------------------------------- peer robots
 
-    def add_peer_keyframe(self, session: int, index: int, stamp_ns: int,
+    def add_peer_keyframe(self, robot: int, index: int, stamp_ns: int,
                           r_solid: npt.ArrayLike, heading: npt.ArrayLike,
                           pose: Any = None) -> int:
-        """Store another robot's keyframe descriptor (a further session) so that this
-        robot's queries find it; its cloud is fetched through :attr:`fetch_cloud` only when a
-        query's candidate needs it.
+        """Store another robot's keyframe descriptor so that this robot's queries find it;
+        its cloud is fetched through :attr:`fetch_cloud` only when a query's candidate needs
+        it. A robot's id is its session id in the database (``match_session`` of its loops).
 
         Returns:
             Its database sequence number.
 
         Raises:
-            SolidError: bad stamp, shape or pose, or ``session`` is this robot's own.
+            SolidError: bad stamp, shape or pose, or ``robot`` is this robot's own id.
         """
         vec = pose_to_vector(pose) if pose is not None else None
-        return self.database.add_foreign(int(session), int(index), r_solid, heading,
+        return self.database.add_foreign(int(robot), int(index), r_solid, heading,
                                          _stamp(stamp_ns), vec)
 
     def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
@@ -673,7 +675,7 @@ class LoopDetector:
             _, _, stamp = db.match_info(seq)
             pose = db.pose(seq)
             out.append((index, stamp, np.asarray(db.r_solid(seq), dtype=np.float64),
-                        np.asarray(db.a_solid(seq), dtype=np.float64),
+                        np.asarray(db.heading(seq), dtype=np.float64),
                         None if pose is None else np.asarray(pose, dtype=np.float64)))
         return out
 

@@ -66,7 +66,8 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.geometry import rot_z
+from solid_ros.core.geometry import rot_z, yaw_of
+from solid_ros.core.reasons import VERIFY_REASONS, Reason
 from solid_ros.core.registration import (
     Alignment,
     KeyframeCloud,
@@ -82,8 +83,8 @@ __all__ = ['REASONS', 'CoarseResult', 'Verification', 'Verifier', 'registration_
 
 FloatArray = npt.NDArray[np.float64]
 
-REASONS = ('verified', 'no_cloud', 'too_sparse', 'coarse_overlap', 'not_converged', 'overlap',
-           'rmse', 'conflict', 'constraint', 'single_object', 'unstable', 'odometry')
+# Kept under this name for callers that list the verdicts a verification can give.
+REASONS = VERIFY_REASONS
 _PROBE_VOXELS = 1.0  # restart offset, in fine voxels (half the correspondence distance)
 _PROBE_DEG = 2.0
 _SIGMA_FLOOR = 0.02
@@ -121,7 +122,7 @@ class Verification:
     """
 
     verified: bool
-    reason: str
+    reason: Reason
     T: FloatArray
     fitness: float = math.nan
     rmse: float = math.nan
@@ -138,7 +139,7 @@ class Verification:
     @property
     def yaw(self) -> float:
         """Heading of ``T`` about +z, radians in (-pi, pi]."""
-        return math.atan2(float(self.T[1, 0]), float(self.T[0, 0]))
+        return yaw_of(self.T[:3, :3])
 
 
 @dataclass
@@ -156,7 +157,7 @@ class CoarseResult:
         return -1.0 if self.alignment is None else float(self.alignment.coarse_overlap)
 
 
-def _rejected(reason: str, T_qm: FloatArray | None = None, **scores: float) -> Verification:
+def _rejected(reason: Reason, T_qm: FloatArray | None = None, **scores: float) -> Verification:
     T: FloatArray = np.eye(4) if T_qm is None else _inv(T_qm)
     return Verification(False, reason, T, **scores)  # type: ignore[arg-type]
 

@@ -32,6 +32,7 @@ from solid_ros.core.config import NodeConfig, SolidConfig
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import BagError, ConfigError, SolidError
 from solid_ros.core.odometry import StampedOdometry, nearest_stamp
+from solid_ros.core.reasons import Reason
 from solid_ros.core.registration import KeyframeCloud
 from solid_ros.formats.bags import Bag, CloudScan, select_cloud_topic, select_odom_topic
 from solid_ros.formats.poses import PoseTrack
@@ -104,7 +105,7 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None, 
     tol = int(round(ncfg.odom_tolerance_sec * 1e9))
     dets = [LoopDetector(cfg.replace(session_id=i)) for i in range(len(bags))]
 
-    def fetch(robot: int, index: int, stamp_ns: int) -> KeyframeCloud | str:
+    def fetch(robot: int, index: int, stamp_ns: int) -> KeyframeCloud | Reason:
         if not 0 <= robot < len(dets):
             return 'peer_gone'
         cloud = dets[robot].own_cloud(index)

@@ -1,4 +1,4 @@
-"""SolidConfig: defaults, validation messages, YAML loading."""
+"""SolidConfig and NodeConfig: defaults, validation messages, checked parameter files."""
 
 from __future__ import annotations
 
@@ -129,26 +129,3 @@ def test_integer_for_float_names_the_fix(tmp_path: Path) -> None:
         load_parameter_file(path)
     # Keyword construction in Python stays lenient.
     assert SolidConfig(fov_width_deg=90).fov_width_deg == 90.0
-
-
-@pytest.mark.parametrize('key, applies', [
-    ('solid_node', True), ('/solid_node', True), ('/**', True), ('/**/solid_node', True),
-    ('/*', True), ('/solid_*', True), ('other', False), ('/ns/solid_node', False),
-    ('/*/solid_node', False),
-])
-def test_blocks_match_node_names_as_rcl_does(tmp_path: Path, key: str, applies: bool) -> None:
-    f = tmp_path / 'p.yaml'
-    f.write_text(f'{key}:\n  ros__parameters:\n    num_range: 20\n')
-    if applies:
-        assert load_parameter_file(f) == {'num_range': 20}
-    else:
-        with pytest.raises(ConfigError, match='no ros__parameters block'):
-            load_parameter_file(f)
-
-
-def test_nested_namespace_blocks(tmp_path: Path) -> None:
-    f = tmp_path / 'p.yaml'
-    f.write_text('robot:\n  solid_node:\n    ros__parameters:\n      num_range: 20\n')
-    assert load_parameter_file(f, '/robot/solid_node') == {'num_range': 20}
-    with pytest.raises(ConfigError, match='blocks: /robot/solid_node'):
-        load_parameter_file(f)
