@@ -72,7 +72,7 @@ from solid_ros.formats.poses import PoseError, odometry_to_pose
 from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
 from solid_ros.ros.params import apply_changes, declare_all
 from solid_ros.ros.peers import PeerLink
-from solid_ros.tools.runtime import tune_allocator, tune_thread_switching
+from solid_ros.runtime import tune_allocator, tune_thread_switching
 
 __all__ = ['NodeStats', 'SolidNode', 'main']
 
