@@ -65,6 +65,7 @@ from solid_ros.core.detector import LoopCandidate, LoopDetector, Proposal
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
 from solid_ros.core.persistence import check_save_target, remove_stale_temporaries
 from solid_ros.core.registration import KeyframeCloud
+from solid_ros.core.stamps import NS_PER_SEC, format_stamp, join_stamp, seconds_to_ns
 from solid_ros.formats.candidates import layout_dims, to_rows
 from solid_ros.formats.peers import DescriptorMessage
 from solid_ros.formats.pointcloud2 import cloud_to_xyz
@@ -76,7 +77,6 @@ from solid_ros.runtime import tune_allocator, tune_thread_switching
 
 __all__ = ['NodeStats', 'SolidNode', 'main']
 
-_NS = 1_000_000_000
 _ODOM_BUFFER = 512
 _ODOM_WAIT_SEC = 0.25
 _ODOM_MAX_MISSES = 3  # waits in a row that saw no odometry before the node stops waiting
@@ -102,15 +102,6 @@ class NodeStats:
     without_odom: int = 0
     verify_skipped: int = 0
     inter_robot_loops: int = 0
-
-
-def _sec(stamp_ns: int) -> str:
-    sec, ns = divmod(int(stamp_ns), 1_000_000_000)
-    return f'{sec}.{ns:09d} s'
-
-
-def _stamp_ns(stamp: Any) -> int:
-    return int(stamp.sec) * _NS + int(stamp.nanosec)
 
 
 class SolidNode(Node):
@@ -270,7 +261,7 @@ class SolidNode(Node):
         except CloudError as err:
             self._reject(str(err))
             return
-        item = (points, _stamp_ns(msg.header.stamp))
+        item = (points, _header_ns(msg))
         with self._cv:
             if len(self._queue) == self._queue.maxlen:
                 self.stats.skipped += 1
@@ -291,7 +282,7 @@ class SolidNode(Node):
             return
         self._last_odom = time.monotonic()
         with self._cv:
-            self._odom.append((_stamp_ns(msg.header.stamp), pose))
+            self._odom.append((_header_ns(msg), pose))
             self._odom_frame = msg.header.frame_id
             self._odom_misses = 0
             self._cv.notify_all()
@@ -300,7 +291,7 @@ class SolidNode(Node):
         """Nearest odometry pose within ``odom_tolerance_sec`` (waits briefly if odom lags)."""
         if not self._cfg.use_odom:
             return None
-        tol = int(self._cfg.odom_tolerance_sec * _NS)
+        tol = seconds_to_ns(self._cfg.odom_tolerance_sec)
         deadline = time.monotonic() + _ODOM_WAIT_SEC
         # Odometry often arrives just after its cloud: wait for one at or past it, but only
         # when someone publishes odometry (an unused odom topic must not slow every scan),
@@ -377,8 +368,10 @@ class SolidNode(Node):
                                   'clouds are processed without pose')
             gap = self._odom_gap
             limit = max(_CLOCK_GAP_SEC, 10.0 * self._cfg.odom_tolerance_sec)
-            if gap is not None and now - gap[0] <= _SILENCE_SEC and abs(gap[1]) > limit * _NS:
-                out['odom_clock'] = (f'odometry on {odom} is stamped {-gap[1] / _NS:+.3f} s from '
+            if (gap is not None and now - gap[0] <= _SILENCE_SEC
+                    and abs(gap[1]) > limit * NS_PER_SEC):
+                out['odom_clock'] = (f'odometry on {odom} is stamped '
+                                     f'{-gap[1] / NS_PER_SEC:+.3f} s from '
                                      f'the clouds on {points} (tolerance '
                                      f'{self._cfg.odom_tolerance_sec:g} s): another clock? '
                                      '(use_sim_time, the bag clock, the driver time source); '
@@ -524,8 +517,8 @@ class SolidNode(Node):
             state = (f'verified, fitness {c.fitness:.2f}, rmse {c.rmse:.3f} m' if c.verified
                      else 'descriptor only')
             self.get_logger().info(
-                f'loop: keyframe {c.query_index} ({_sec(c.query_stamp_ns)}) -> session '
-                f'{c.match_session} keyframe {c.match_index} ({_sec(c.match_stamp_ns)}), '
+                f'loop: keyframe {c.query_index} ({format_stamp(c.query_stamp_ns)}) -> session '
+                f'{c.match_session} keyframe {c.match_index} ({format_stamp(c.match_stamp_ns)}), '
                 f'{state}, yaw {math.degrees(c.yaw):.1f} deg, t ({t}) m')
         self._add_edges(cands, pose, proposal, detector)
 
@@ -673,7 +666,7 @@ class SolidNode(Node):
             'seconds_since_last_cloud': _age(now, self._last_cloud),
             'odom_topic': self._odom_sub.topic_name if self._cfg.use_odom else '',
             'seconds_since_last_odom': _age(now, self._last_odom),
-            'odom_stamp_offset_sec': 'nan' if gap is None else f'{-gap[1] / _NS:.3f}',
+            'odom_stamp_offset_sec': 'nan' if gap is None else f'{-gap[1] / NS_PER_SEC:.3f}',
             'clouds_rejected_recently': len(self._rejected_at),
             'last_reject_reason': self._last_reason,
             'problems': ', '.join(problems) or 'none',
@@ -725,6 +718,10 @@ _TROUBLE = {
 _SELF_LOGGED = ('rejected', *_TROUBLE)
 _RECOVERED = {'no_clouds': 'PointCloud2 arriving', 'no_odom': 'odometry arriving',
               'odom_clock': 'odometry stamps match the clouds again'}
+
+
+def _header_ns(msg: Any) -> int:
+    return join_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
 
 
 def _age(now: float, then: float | None) -> str:
