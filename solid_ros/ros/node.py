@@ -783,6 +783,12 @@ def main(args: list[str] | None = None) -> int:
         status = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # SIGINT shuts the context down from the signal handler; a spin (or start) caught in
+        # between fails on the invalid context instead of seeing the shutdown. That is the
+        # same clean stop; any other rcl error still fails loudly.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()

@@ -655,3 +655,35 @@ def test_clouds_without_a_usable_point_are_rejected_not_stored(
     assert logged and not any('processing failed' in line for line in logged)
     h.wait_for(lambda: 'rejected' in _problems(h), 'rejections on /diagnostics', 10.0)
     assert h.status()['clouds_rejected'] == '4'
+
+
+# -- main(): how the process ends ----------------------------------------------------------------
+
+
+def _spin_failing(shut_down_first: bool) -> Callable[[Any], None]:
+    from rclpy._rclpy_pybind11 import RCLError
+
+    def spin(node: Any) -> None:
+        if shut_down_first:  # what SIGINT's handler does while spin builds its wait set
+            rclpy.shutdown()
+        raise RCLError('failed to initialize wait set: the given context is not valid, '
+                       'either rcl_init() was not called or rcl_shutdown() was called')
+    return spin
+
+
+def test_main_exits_0_when_sigint_invalidates_the_context_mid_spin(
+        monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setattr(rclpy, 'spin', _spin_failing(shut_down_first=True))
+    assert node_module.main(['solid_node', '--ros-args', '-p', 'use_odom:=false']) == 0
+    assert 'Traceback' not in capfd.readouterr().err
+    assert not rclpy.ok()
+
+
+def test_main_fails_loudly_on_an_rcl_error_while_running(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from rclpy._rclpy_pybind11 import RCLError
+
+    monkeypatch.setattr(rclpy, 'spin', _spin_failing(shut_down_first=False))
+    with pytest.raises(RCLError, match='wait set'):
+        node_module.main(['solid_node', '--ros-args', '-p', 'use_odom:=false'])
+    assert not rclpy.ok()  # shut down all the same
