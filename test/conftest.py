@@ -59,7 +59,7 @@ def context() -> Iterator[Context]:
     rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
     from rclpy.context import Context
 
-    from solid_ros.tools.runtime import tune_thread_switching
+    from solid_ros.runtime import tune_thread_switching
 
     # In-process nodes get the thread switching solid_node's main() sets for itself.
     interval = sys.getswitchinterval()

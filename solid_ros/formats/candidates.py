@@ -24,6 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
+from solid_ros.core.stamps import join_stamp, split_stamp
 
 __all__ = ['BASE_COLUMNS', 'COLUMNS', 'COLUMNS_LABEL', 'COV_COLUMNS', 'INT_COLUMNS',
            'POSE_COLUMNS', 'ROWS_LABEL', 'CandidateDecodeError', 'decode_candidates',
@@ -42,17 +43,10 @@ INT_COLUMNS = frozenset({'query_index', 'match_index', 'query_stamp_sec', 'query
                          'match_stamp_sec', 'match_stamp_nanosec', 'match_session', 'verified'})
 ROWS_LABEL = 'candidates'
 COLUMNS_LABEL = ','.join(COLUMNS)
-_NS = 1_000_000_000
 
 
 class CandidateDecodeError(SolidError):
     """A Float64MultiArray does not hold loop candidates in the documented layout."""
-
-
-def split_stamp(stamp_ns: int) -> tuple[int, int]:
-    """Return ``(sec, nanosec)`` of a stamp in integer nanoseconds (nanosec in [0, 1e9))."""
-    sec, nanosec = divmod(int(stamp_ns), _NS)
-    return sec, nanosec
 
 
 def to_rows(candidates: Iterable[Any]) -> npt.NDArray[np.float64]:
@@ -122,9 +116,9 @@ def decode_candidates(msg: Any) -> list[dict[str, float | int]]:
             value = float(row[col[name]]) if name in col else (0.0 if name == 'verified'
                                                                else math.nan)
             item[name] = int(value) if name in INT_COLUMNS else value
-        item['query_stamp_ns'] = int(item['query_stamp_sec']) * _NS + int(
-            item['query_stamp_nanosec'])
-        item['match_stamp_ns'] = int(item['match_stamp_sec']) * _NS + int(
-            item['match_stamp_nanosec'])
+        item['query_stamp_ns'] = join_stamp(int(item['query_stamp_sec']),
+                                            int(item['query_stamp_nanosec']))
+        item['match_stamp_ns'] = join_stamp(int(item['match_stamp_sec']),
+                                            int(item['match_stamp_nanosec']))
         out.append(item)
     return out

@@ -21,10 +21,10 @@ import numpy.typing as npt
 from solid_ros.core.errors import SolidError
 from solid_ros.core.odometry import nearest_stamp
 from solid_ros.formats.poses import read_times
+from solid_ros.runtime import tune_allocator
 from solid_ros.tools.evaluation import relative_yaws
 from solid_ros.tools.replay import ReplayResult, load_config, replay, summary_lines
 from solid_ros.tools.replay import main as replay_main
-from solid_ros.tools.runtime import tune_allocator
 
 __all__ = ['config_overrides', 'drive_options', 'main', 'revisit_table', 'shipped_config']
 

@@ -33,12 +33,12 @@ from solid_ros.core.odometry import StampedOdometry, nearest_stamp
 from solid_ros.core.persistence import check_save_target
 from solid_ros.formats.bags import Bag, select_cloud_topic, select_odom_topic
 from solid_ros.formats.poses import PoseError, load_reference
+from solid_ros.runtime import tune_allocator
 from solid_ros.tools.evaluation import Evaluation, evaluate, recommend_threshold, sweep_table
 from solid_ros.tools.fleet import fleet_summary_lines, replay_fleet, write_fleet_outputs
 from solid_ros.tools.loops import LoopRecord, overlap_sweep, pose_error, score_loops
 from solid_ros.tools.progress import Progress
 from solid_ros.tools.reports import write_json
-from solid_ros.tools.runtime import tune_allocator
 
 __all__ = ['ReplayResult', 'build_parser', 'main', 'replay']
 

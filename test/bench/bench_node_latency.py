@@ -238,7 +238,7 @@ def echo() -> int:
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import Float64MultiArray
 
-    from solid_ros.tools.runtime import tune_allocator, tune_thread_switching
+    from solid_ros.runtime import tune_allocator, tune_thread_switching
 
     tune_allocator()
     tune_thread_switching()

@@ -14,7 +14,7 @@ the node runs as fast as it can. Every ``--every`` processed clouds it reads the
 VmRSS from /proc/<pid>/status, and at the end prints the curve and whether it is flat once the
 database is full: RSS over the last third of the stream after the database filled must not
 grow by more than ``--flat-mb`` MB. It is not flat at once: with the node's allocator tuning
-(:func:`~solid_ros.tools.runtime.tune_allocator` keeps freed memory up to a 256 MB trim
+(:func:`~solid_ros.runtime.tune_allocator` keeps freed memory up to a 256 MB trim
 threshold) the heap's retained free memory steps up with bursts of loop verification and
 levels off later; measured 2026-11 on 2 shared cores: 153 MB when the database filled (503
 clouds), 172.1 MB from 4250 clouds on, 172.3 MB at 6000 (3000 clouds end before it levels:

@@ -42,6 +42,7 @@ from solid_ros.core.config import SolidConfig  # noqa: E402
 from solid_ros.core.detector import LoopDetector  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
 from solid_ros.formats.pointcloud2 import cloud_to_xyz  # noqa: E402
+from solid_ros.ros import health as health_module  # noqa: E402
 from solid_ros.ros import node as node_module  # noqa: E402
 from solid_ros.ros.node import SolidNode  # noqa: E402
 
@@ -505,7 +506,7 @@ def test_markers_keep_only_the_newest_loops(harness: Callable[..., Harness]) -> 
     # The newest three loops: query at x = 6, 7, 8, each to the first scan (distance ties).
     assert [(p.x, p.y) for p in edges.points] == [(6.0, 1.0), (0.0, 1.0), (7.0, 1.0),
                                                   (0.0, 1.0), (8.0, 1.0), (0.0, 1.0)]
-    assert len(h.node._edges) == 3
+    assert h.node._markers is not None and len(h.node._markers) == 3
 
 
 def test_markers_off(harness: Callable[..., Harness]) -> None:
@@ -513,7 +514,7 @@ def test_markers_off(harness: Callable[..., Harness]) -> None:
     h.replay(_loops_of_one_scene(3))
     assert h.node.stats.loops == 2
     assert h.node.count_publishers('/solid_node/loop_markers') == 0
-    assert h.markers == [] and not h.node._edges
+    assert h.markers == [] and h.node._markers is None
 
 
 # -- health: silent topics, another clock, rejected clouds -----------------------------------
@@ -548,7 +549,7 @@ def test_silent_topics_and_odometry_on_another_clock_warn(
         stamp = 10**12 + i * 10**8
         pub_odom.publish(make_odom(stamp + odom_offset_ns, 0.1 * i))
         # The odometry first: on a loaded machine it may otherwise miss the node's wait.
-        h.wait_for(lambda: any(s == stamp + odom_offset_ns for s, _ in list(h.node._odom)),
+        h.wait_for(lambda: h.node._odom.latest_stamp_ns == stamp + odom_offset_ns,
                    'odometry delivered')
         pub_points.publish(make_cloud(scene, stamp))
         h.wait_for(lambda: h.node.stats.received > i, 'cloud delivered')
@@ -607,9 +608,9 @@ def test_a_failed_cloud_warns_while_recent_then_clears(
         harness: Callable[..., Harness], monkeypatch: pytest.MonkeyPatch) -> None:
     # One scan fails inside the detector: counted, WARN with the reason, the node goes on;
     # the WARN ends once failures stop (the counter stays).
-    monkeypatch.setattr(node_module, '_SILENCE_SEC', 3.0)
+    monkeypatch.setattr(health_module, 'SILENCE_SEC', 3.0)
     h = harness([Parameter('use_odom', value=False)] + LOOP_EVERY_SCAN, params_file=None)
-    det = h.node._detector
+    det = h.node._shared.detector
     real = det.propose
     calls = [0]
 
@@ -646,7 +647,7 @@ def test_clouds_without_a_usable_point_are_rejected_not_stored(
     h.replay(messages)
     s = h.node.stats
     assert (s.received, s.processed, s.rejected, s.failed) == (9, 5, 4, 0)
-    assert h.node._db_size() == 5
+    assert h.node._shared.size == 5
     # Indices stay contiguous: the good clouds are keyframes 0-4, each loop to keyframe 0.
     assert [(c['query_index'], c['match_index']) for c in h.candidates] == [
         (1, 0), (2, 0), (3, 0), (4, 0)]
@@ -655,3 +656,35 @@ def test_clouds_without_a_usable_point_are_rejected_not_stored(
     assert logged and not any('processing failed' in line for line in logged)
     h.wait_for(lambda: 'rejected' in _problems(h), 'rejections on /diagnostics', 10.0)
     assert h.status()['clouds_rejected'] == '4'
+
+
+# -- main(): how the process ends ----------------------------------------------------------------
+
+
+def _spin_failing(shut_down_first: bool) -> Callable[[Any], None]:
+    from rclpy._rclpy_pybind11 import RCLError
+
+    def spin(node: Any) -> None:
+        if shut_down_first:  # what SIGINT's handler does while spin builds its wait set
+            rclpy.shutdown()
+        raise RCLError('failed to initialize wait set: the given context is not valid, '
+                       'either rcl_init() was not called or rcl_shutdown() was called')
+    return spin
+
+
+def test_main_exits_0_when_sigint_invalidates_the_context_mid_spin(
+        monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setattr(rclpy, 'spin', _spin_failing(shut_down_first=True))
+    assert node_module.main(['solid_node', '--ros-args', '-p', 'use_odom:=false']) == 0
+    assert 'Traceback' not in capfd.readouterr().err
+    assert not rclpy.ok()
+
+
+def test_main_fails_loudly_on_an_rcl_error_while_running(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from rclpy._rclpy_pybind11 import RCLError
+
+    monkeypatch.setattr(rclpy, 'spin', _spin_failing(shut_down_first=False))
+    with pytest.raises(RCLError, match='wait set'):
+        node_module.main(['solid_node', '--ros-args', '-p', 'use_odom:=false'])
+    assert not rclpy.ok()  # shut down all the same

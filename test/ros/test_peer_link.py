@@ -199,13 +199,13 @@ def test_bad_peers_are_counted_and_ignored(fleet: Fleet) -> None:
     fleet.wait_for(lambda: counts['malformed'] >= 2 and counts['descriptors_refused'] >= 1
                    and counts['clouds_missing'] >= 1, 'peer counters')
     assert counts['descriptors_stored'] == 1 and counts['descriptors_repeated'] == 1
-    size = node._detector.database.size
+    size = node._shared.detector.database.size
     # A candidate against robot 5 (which never answers) times out and is dropped.
     assert isinstance(node._peers.fetch(5, 0, 1), str)
     assert counts['clouds_timed_out'] == 1
     # The node keeps working.
     fleet.feed(0, list(range(5, 10)))
-    assert node._detector.database.size == size + 5
+    assert node._shared.detector.database.size == size + 5
 
 
 def test_hku1_split_between_two_robots(fleet: Fleet, shared_data: Path) -> None:

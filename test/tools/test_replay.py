@@ -420,7 +420,7 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
     from solid_ros.formats.bags import Bag
     from solid_ros.formats.candidates import decode_candidates
     from solid_ros.ros.node import SolidNode
-    from solid_ros.tools.runtime import tune_thread_switching
+    from solid_ros.runtime import tune_thread_switching
 
     msgs: list[tuple[str, object]] = []
     with Bag(bag) as b:

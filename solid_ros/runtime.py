@@ -9,6 +9,9 @@ still gains from :func:`tune_allocator`: measured with test/bench/bench_node_lat
 messages: glibc serves blocks that size with fresh mmap() calls and returns them at free(),
 so each message's buffers are page-faulted in again; raising the mmap and trim thresholds
 keeps them in the heap for reuse.
+
+A leaf at the package top: it imports nothing of solid_ros, so the node (ros) and the offline
+tools, sibling adapters, both use it without one importing the other.
 """
 
 from __future__ import annotations

@@ -1,0 +1,201 @@
+"""The flow of one scan through solid_node: a describe thread, then a verify thread.
+
+Stage 1 (describe thread) pairs the cloud with odometry, describes it, searches and stores;
+stage 2 (verify thread) verifies each keyframe's candidates in keyframe order and hands the
+result on as one :class:`Verified`. With ``verify`` off stage 1 hands on itself: what is left
+takes well under a millisecond, less than waking the other thread. Each stage is a
+:class:`~solid_ros.ros.worker.Worker` with a bounded keep-newest queue; drops and failures are
+counted by :class:`~solid_ros.ros.health.InputHealth` and logged, and the stages go on. No
+ROS import: the node passes its odometry pairing, its output and its logger in.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.detector import LoopDetector, Proposal, ScanResult
+from solid_ros.core.errors import CloudError
+from solid_ros.core.odometry import OdomSample
+from solid_ros.ros.health import WARN_THROTTLE_SEC, InputHealth
+from solid_ros.ros.shared_detector import SharedDetector
+from solid_ros.ros.stats import StageTimings
+from solid_ros.ros.worker import Worker
+
+__all__ = ['Cloud', 'Stages', 'Verified']
+
+MIN_PROPOSALS = 20  # keyframes that may wait for verification (at least queue_size)
+
+Cloud = tuple[npt.NDArray[np.floating[Any]], int]  # (points, stamp_ns) of a decoded cloud
+
+
+class Log(Protocol):
+    """The logger calls the stages make (an rclpy logger has them)."""
+
+    def info(self, message: str, **kwargs: Any) -> object: ...
+    def warning(self, message: str, **kwargs: Any) -> object: ...
+    def error(self, message: str, **kwargs: Any) -> object: ...
+
+
+@dataclass(frozen=True)
+class Verified:
+    """One keyframe through both stages, as handed on.
+
+    Attributes:
+        result: what the detector made of it (loops, attempts, stage times).
+        odom: the odometry paired with its cloud, if any.
+        proposal: its descriptor stage (the hits, which say where the matches are stored).
+        detector: the detector that verified it (``~/reset`` may replace it right after).
+    """
+
+    result: ScanResult
+    odom: OdomSample | None
+    proposal: Proposal
+    detector: LoopDetector
+
+
+@dataclass(frozen=True)
+class _Keyframe:
+    proposal: Proposal
+    odom: OdomSample | None
+
+
+class Stages:
+    """The describe and verify threads of the node.
+
+    Args:
+        shared: the detector both stages use.
+        health: counts drops and failures.
+        pair: the odometry for a cloud stamp (may wait briefly), or None.
+        hand_on: takes every verified keyframe, in keyframe order.
+        log: where drops and failures are logged.
+        queue_size: clouds that may wait for stage 1.
+        verify: whether the detector verifies (read-only while running).
+        use_odom: whether a cloud without odometry counts as such.
+        share: sends each keyframe's descriptor to peer robots, if any.
+    """
+
+    def __init__(self, shared: SharedDetector, health: InputHealth,
+                 pair: Callable[[int], OdomSample | None], hand_on: Callable[[Verified], None],
+                 log: Log, *, queue_size: int, verify: bool, use_odom: bool,
+                 share: Callable[[Proposal], None] | None = None) -> None:
+        self.timings = StageTimings()
+        self._shared, self._health, self._log = shared, health, log
+        self._pair, self._hand_on, self._share = pair, hand_on, share
+        self._verify, self._use_odom = verify, use_odom
+        self._describe_worker: Worker[Cloud] = Worker(
+            'solid_describe', self._describe_stage, queue_size, self._describe_failed)
+        self._verify_worker: Worker[_Keyframe] = Worker(
+            'solid_verify', self._verify_stage, max(MIN_PROPOSALS, queue_size),
+            self._verify_failed, prepare=self._import_registration)
+        self._workers = (self._describe_worker, self._verify_worker)
+
+    def start(self) -> None:
+        """Start both threads."""
+        for worker in self._workers:
+            worker.start()
+
+    def put(self, cloud: Cloud) -> None:
+        """Queue a decoded cloud for stage 1 (the oldest waiting one is dropped when full)."""
+        if self._describe_worker.put(cloud):
+            skipped = self._health.trouble('skipped')
+            self._log.warning(
+                f'processing falls behind: dropped the oldest waiting cloud ({skipped} skipped '
+                'so far)', throttle_duration_sec=WARN_THROTTLE_SEC)
+
+    def reject(self, reason: str) -> None:
+        """Count and log a rejected cloud (its kind of reason throttled)."""
+        line = self._health.reject(reason)
+        if line is not None:
+            self._log.warning(line)
+
+    def waiting(self) -> tuple[int, int]:
+        """Clouds waiting for stage 1 and keyframes waiting for stage 2."""
+        return len(self._describe_worker), len(self._verify_worker)
+
+    def clear(self) -> None:
+        """Forget what waits in both stages (``~/reset``)."""
+        for worker in self._workers:
+            worker.clear()
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Block until both stages are idle with nothing waiting; return False on timeout."""
+        deadline = time.monotonic() + timeout
+        while True:
+            # Stage 1 hands a keyframe on before it goes idle: once it is idle after stage 2
+            # was, both are.
+            for worker in self._workers:
+                if not worker.wait_idle(deadline - time.monotonic()):
+                    return False
+            if all(worker.idle for worker in self._workers):
+                return True
+
+    def stop(self, join_sec: float) -> None:
+        """End both threads after the items they handle, waiting up to ``join_sec`` each."""
+        for worker in self._workers:
+            worker.stop()
+        for worker in self._workers:
+            worker.join(join_sec)
+
+    # -- on the threads ----------------------------------------------------------------------
+
+    def _describe_stage(self, cloud: Cloud) -> None:
+        points, stamp_ns = cloud
+        t0 = time.perf_counter()
+        odom = self._pair(stamp_ns)
+        proposal = self._shared.propose(points, stamp_ns, None if odom is None else odom.pose)
+        self.timings.add_total((time.perf_counter() - t0) * 1e3)
+        stats = self._health.stats
+        stats.processed += 1
+        if odom is None and self._use_odom:
+            stats.without_odom += 1
+        if proposal is None:
+            return
+        if self._share is not None:
+            self._share(proposal)
+        self.timings.add('describe', proposal.describe_ms)
+        self.timings.add('search', proposal.search_ms)
+        keyframe = _Keyframe(proposal, odom)
+        if not self._verify:
+            self._verify_stage(keyframe)
+        elif self._verify_worker.put(keyframe):
+            dropped = self._health.trouble('verify_skipped')
+            self._log.warning(
+                'verification falls behind: dropped the oldest waiting keyframe '
+                f'({dropped} so far; its cloud is not stored)',
+                throttle_duration_sec=WARN_THROTTLE_SEC)
+
+    def _describe_failed(self, err: Exception) -> None:
+        if isinstance(err, CloudError):  # decoded, but nothing the detector can use
+            self.reject(str(err))
+            return
+        self._health.trouble('failed')
+        self._log.error(f'processing failed: {type(err).__name__}: {err}',
+                        throttle_duration_sec=WARN_THROTTLE_SEC)
+
+    def _import_registration(self) -> None:
+        # small_gicp and scipy.ndimage take about 0.8 s to import: here, before the first
+        # keyframe, not in its latency (where the queue would drop clouds).
+        if not self._verify:
+            return
+        for module in ('small_gicp', 'scipy.ndimage'):
+            try:
+                importlib.import_module(module)
+            except ImportError as err:
+                self._log.error(f'verification needs {module}: {err} (pip install small-gicp)')
+
+    def _verify_stage(self, keyframe: _Keyframe) -> None:
+        result, detector = self._shared.verify(keyframe.proposal)
+        self.timings.add('verify', result.times.verify)
+        self._hand_on(Verified(result, keyframe.odom, keyframe.proposal, detector))
+
+    def _verify_failed(self, err: Exception) -> None:
+        self._health.trouble('failed')
+        self._log.error(f'verification failed: {type(err).__name__}: {err}',
+                        throttle_duration_sec=WARN_THROTTLE_SEC)

@@ -1,0 +1,117 @@
+"""Stages and SharedDetector without ROS: clouds in, one Verified per keyframe out, in order."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.detector import LoopDetector
+from solid_ros.core.odometry import OdomSample
+from solid_ros.ros.health import InputHealth
+from solid_ros.ros.shared_detector import SharedDetector
+from solid_ros.ros.stages import Stages, Verified
+
+SEC = 1_000_000_000
+# Every scan is a keyframe and, after the first, a loop to an earlier one.
+LOOP_EVERY_SCAN = SolidConfig().replace(distance_threshold=0.5, exclude_recent_frames=0,
+                                        keyframe_min_sec=0.0, keyframe_min_distance=0.0,
+                                        keyframe_min_rotation_deg=0.0)
+
+
+class Log:
+    def __init__(self) -> None:
+        self.lines: list[tuple[str, str]] = []
+
+    def info(self, message: str, **kwargs: Any) -> None:
+        self.lines.append(('info', message))
+
+    def warning(self, message: str, **kwargs: Any) -> None:
+        self.lines.append(('warning', message))
+
+    def error(self, message: str, **kwargs: Any) -> None:
+        self.lines.append(('error', message))
+
+
+def scene(seed: int = 3) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform([-40, -40, -2], [40, 40, 6], size=(6000, 3))
+    return pts[np.hypot(pts[:, 0], pts[:, 1]) > 4.0]
+
+
+def run(config: SolidConfig, clouds: list[tuple[np.ndarray, int]], use_odom: bool = True,
+        ) -> tuple[list[Verified], InputHealth, Log, list[str]]:
+    shared = SharedDetector(LoopDetector(config))
+    health = InputHealth('/points', '/odom' if use_odom else None, 'reliable', 0.05,
+                         lambda topic: 0)
+    log = Log()
+    out: list[Verified] = []
+    threads: list[str] = []
+
+    def hand_on(v: Verified) -> None:
+        threads.append(threading.current_thread().name)
+        out.append(v)
+
+    def pair(stamp_ns: int) -> OdomSample | None:
+        pose = np.eye(4)
+        pose[0, 3] = stamp_ns / SEC
+        return OdomSample(stamp_ns, pose) if stamp_ns % (2 * SEC) == 0 else None
+
+    stages = Stages(shared, health, pair, hand_on, log, queue_size=100, verify=config.verify,
+                    use_odom=use_odom)
+    stages.start()
+    try:
+        for cloud in clouds:
+            stages.put(cloud)
+        assert stages.wait_idle(120.0)
+        assert stages.waiting() == (0, 0)
+    finally:
+        stages.stop(10.0)
+    return out, health, log, threads
+
+
+def test_descriptor_only_hands_on_every_keyframe_in_order_on_the_describe_thread() -> None:
+    pts = scene()
+    clouds = [(pts, (i + 1) * SEC) for i in range(4)]
+    out, health, log, threads = run(LOOP_EVERY_SCAN.replace(verify=False), clouds)
+    assert [v.result.query_index for v in out] == [0, 1, 2, 3]
+    assert [v.result.stamp_ns for v in out] == [c[1] for c in clouds]
+    # The odometry paired with each cloud travels with its result (even stamps had one).
+    assert [None if v.odom is None else v.odom.stamp_ns for v in out] == [None, 2 * SEC, None,
+                                                                          4 * SEC]
+    assert [len(v.result.loops) for v in out] == [0, 1, 1, 1]
+    assert all(v.detector is out[0].detector for v in out)
+    assert set(threads) == {'solid_describe'}
+    assert (health.stats.processed, health.stats.without_odom) == (4, 2)
+    assert log.lines == []
+
+
+def test_the_same_loops_as_the_detector_alone() -> None:
+    # The node's flow (two stages, verification on its own thread) finds what process() does.
+    rng = np.random.default_rng(0)
+    base = scene(7)
+    clouds = []
+    for i in range(6):
+        a = rng.uniform(-np.pi, np.pi)
+        rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        clouds.append((base @ rot.T + rng.normal(scale=0.02, size=base.shape), (i + 1) * SEC))
+    out, _, _, threads = run(LOOP_EVERY_SCAN, clouds, use_odom=False)
+    alone = LoopDetector(LOOP_EVERY_SCAN)
+    want = [alone.process(pts, stamp).loops for pts, stamp in clouds]
+    got = [v.result.loops for v in out]
+    assert [[(c.query_index, c.match_index) for c in r] for r in got] == [
+        [(c.query_index, c.match_index) for c in r] for r in want]
+    assert sum(len(r) for r in got) > 0
+    assert set(threads) == {'solid_verify'}
+
+
+def test_unusable_clouds_are_rejected_and_failures_counted_the_stages_go_on() -> None:
+    pts = scene()
+    clouds = [(pts, 1 * SEC), (np.full((500, 3), np.nan), 2 * SEC), (pts, 3 * SEC)]
+    out, health, log, _ = run(LOOP_EVERY_SCAN.replace(verify=False), clouds)
+    assert [v.result.query_index for v in out] == [0, 1]
+    assert (health.stats.processed, health.stats.rejected, health.stats.failed) == (2, 1, 0)
+    assert [level for level, _ in log.lines] == ['warning']
+    assert log.lines[0][1].startswith('rejected PointCloud2 on /points: no usable point')
