@@ -231,11 +231,7 @@ def _options(args: argparse.Namespace) -> ReplayOptions:
 
 def _run_fleet(bags: list[str], config: SolidConfig, options: ReplayOptions,
                quiet: bool) -> int:
-    fleet = replay_fleet(bags, config, node_config=options.node_config, topic=options.topic,
-                         odom_topic=options.odom_topic, radius=options.radius,
-                         max_pose_error_m=options.max_pose_error_m,
-                         max_pose_error_deg=options.max_pose_error_deg,
-                         progress=options.progress)
+    fleet = replay_fleet(bags, config, options)
     files = write_fleet_outputs(options.out_dir, fleet) if options.out_dir else []
     if not quiet:
         print('\n'.join(fleet_summary_lines(fleet, PROG)))
