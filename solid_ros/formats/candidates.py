@@ -18,26 +18,75 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from dataclasses import fields
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.detector import LoopCandidate
 from solid_ros.core.errors import SolidError
 from solid_ros.core.stamps import join_stamp, split_stamp
 
-__all__ = ['BASE_COLUMNS', 'COLUMNS', 'COLUMNS_LABEL', 'COV_COLUMNS', 'INT_COLUMNS',
-           'POSE_COLUMNS', 'ROWS_LABEL', 'CandidateDecodeError', 'decode_candidates',
+__all__ = ['BASE_COLUMNS', 'CANDIDATE_FIELDS', 'COLUMNS', 'COLUMNS_LABEL', 'COV_COLUMNS',
+           'INT_COLUMNS', 'MESSAGE_FIELDS', 'POSE_COLUMNS', 'ROWS_LABEL', 'SPANS',
+           'CandidateDecodeError', 'candidate_columns', 'candidate_values', 'decode_candidates',
            'layout_dims', 'split_stamp', 'to_rows']
 
-BASE_COLUMNS: tuple[str, ...] = (
-    'query_index', 'match_index', 'query_stamp_sec', 'query_stamp_nanosec',
-    'match_stamp_sec', 'match_stamp_nanosec', 'distance', 'yaw', 'margin', 'match_session',
-)
+# Columns of a LoopCandidate field that spans several; every other field is one column of its
+# own name. Rows of messages split the stamps (see split_stamp).
 POSE_COLUMNS: tuple[str, ...] = ('tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw')
 COV_COLUMNS: tuple[str, ...] = tuple(f'cov_{i}' for i in range(36))
-COLUMNS: tuple[str, ...] = (BASE_COLUMNS + ('verified',) + POSE_COLUMNS + ('fitness', 'rmse')
-                            + COV_COLUMNS)
+SPANS: dict[str, tuple[str, ...]] = {'pose': POSE_COLUMNS, 'covariance': COV_COLUMNS}
+_SPLIT = {'query_stamp_ns': ('query_stamp_sec', 'query_stamp_nanosec'),
+          'match_stamp_ns': ('match_stamp_sec', 'match_stamp_nanosec')}
+CANDIDATE_FIELDS: tuple[str, ...] = tuple(f.name for f in fields(LoopCandidate))
+# The message's fields in column order; the first eight (ten columns) are the layout of older
+# publishers.
+MESSAGE_FIELDS: tuple[str, ...] = (
+    'query_index', 'match_index', 'query_stamp_ns', 'match_stamp_ns', 'distance', 'yaw',
+    'margin', 'match_session', 'verified', 'pose', 'fitness', 'rmse', 'covariance')
+
+
+def candidate_columns(layout: Iterable[str], *, extra: Iterable[str] = (),
+                      split_stamps: bool = False) -> tuple[str, ...]:
+    """The column names of a row layout, derived from :class:`LoopCandidate`.
+
+    Args:
+        layout: names in column order: LoopCandidate fields (``pose`` spans ``tx`` ... ``qw``,
+            ``covariance`` ``cov_0`` ... ``cov_35``) and names from ``extra``.
+        extra: columns that are no field (what a tool adds), one column each.
+        split_stamps: a stamp spans ``*_stamp_sec`` and ``*_stamp_nanosec``.
+
+    Raises:
+        ValueError: a name is neither a LoopCandidate field nor in ``extra``.
+    """
+    others = set(extra)
+    out: list[str] = []
+    for name in layout:
+        if name in others:
+            out.append(name)
+        elif name not in CANDIDATE_FIELDS:
+            raise ValueError(f'{name!r} is not a LoopCandidate field')
+        elif split_stamps and name in _SPLIT:
+            out.extend(_SPLIT[name])
+        else:
+            out.extend(SPANS.get(name, (name,)))
+    return tuple(out)
+
+
+def candidate_values(candidate: Any, name: str, *, split_stamps: bool = False) -> tuple[Any, ...]:
+    """The values of one LoopCandidate field, one per column of :func:`candidate_columns`."""
+    value = getattr(candidate, name)
+    if name in SPANS:
+        return tuple(value)
+    if split_stamps and name in _SPLIT:
+        return split_stamp(value)
+    return (value,)
+
+
+BASE_COLUMNS: tuple[str, ...] = candidate_columns(MESSAGE_FIELDS[:8], split_stamps=True)
+COLUMNS: tuple[str, ...] = candidate_columns(MESSAGE_FIELDS, split_stamps=True)
 # Columns holding integers (decoded as int).
 INT_COLUMNS = frozenset({'query_index', 'match_index', 'query_stamp_sec', 'query_stamp_nanosec',
                          'match_stamp_sec', 'match_stamp_nanosec', 'match_session', 'verified'})
@@ -56,13 +105,8 @@ def to_rows(candidates: Iterable[Any]) -> npt.NDArray[np.float64]:
         candidates: :class:`~solid_ros.core.detector.LoopCandidate` objects (or any with its
             attributes).
     """
-    rows = []
-    for c in candidates:
-        q_sec, q_ns = split_stamp(c.query_stamp_ns)
-        m_sec, m_ns = split_stamp(c.match_stamp_ns)
-        rows.append((c.query_index, c.match_index, q_sec, q_ns, m_sec, m_ns, c.distance,
-                     c.yaw, c.margin, c.match_session, float(bool(c.verified)), *c.pose,
-                     c.fitness, c.rmse, *c.covariance))
+    rows = [[v for name in MESSAGE_FIELDS
+             for v in candidate_values(c, name, split_stamps=True)] for c in candidates]
     if not rows:
         return np.empty((0, len(COLUMNS)), dtype=np.float64)
     return np.asarray(rows, dtype=np.float64)

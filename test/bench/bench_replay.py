@@ -2,7 +2,7 @@
 
 Usage: ``python test/bench/bench_replay.py [--params config/avia.yaml] [--repeats 3]``
 
-1. Replays ../shared/data/hku1/bag (314 keyframes) through :func:`solid_ros.replay.replay`
+1. Replays ../shared/data/hku1/bag (314 keyframes) through :func:`solid_ros.tools.replay.replay`
    and prints scans/s (best of ``--repeats`` runs).
 2. Writes MCAP bags holding the hku1 clouds 1x, 2x and 4x (stamps shifted, every copy a new
    scan) in a temporary directory and prints the replay time of each, the time per scan and

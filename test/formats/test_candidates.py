@@ -9,9 +9,14 @@ import pytest
 
 from solid_ros.core.detector import LoopCandidate
 from solid_ros.formats.candidates import (
+    BASE_COLUMNS,
+    CANDIDATE_FIELDS,
     COLUMNS,
     COLUMNS_LABEL,
+    MESSAGE_FIELDS,
     CandidateDecodeError,
+    candidate_columns,
+    candidate_values,
     decode_candidates,
     layout_dims,
     split_stamp,
@@ -38,6 +43,32 @@ def test_split_stamp_is_exact_and_nanosec_in_range() -> None:
     assert split_stamp(0) == (0, 0)
     sec, ns = split_stamp(-1)
     assert (sec, ns) == (-1, 999_999_999)
+
+
+def test_columns_are_derived_from_the_candidate_fields() -> None:
+    # The wire layout, written out once here: deriving it must not move a column.
+    assert BASE_COLUMNS == ('query_index', 'match_index', 'query_stamp_sec',
+                            'query_stamp_nanosec', 'match_stamp_sec', 'match_stamp_nanosec',
+                            'distance', 'yaw', 'margin', 'match_session')
+    assert COLUMNS == (BASE_COLUMNS + ('verified', 'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw',
+                                       'fitness', 'rmse')
+                       + tuple(f'cov_{i}' for i in range(36)))
+    assert set(MESSAGE_FIELDS) <= set(CANDIDATE_FIELDS)
+    assert candidate_columns(['pose', 'extra', 'query_stamp_ns'], extra=['extra']) == (
+        'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw', 'extra', 'query_stamp_ns')
+    with pytest.raises(ValueError, match="'tilt' is not a LoopCandidate field"):
+        candidate_columns(['query_index', 'tilt'])
+
+
+def test_values_span_their_columns() -> None:
+    c = CANDS[0]
+    for name in CANDIDATE_FIELDS:
+        assert len(candidate_values(c, name)) == len(candidate_columns([name]))
+        assert len(candidate_values(c, name, split_stamps=True)) == len(
+            candidate_columns([name], split_stamps=True))
+    assert candidate_values(c, 'query_stamp_ns', split_stamps=True) == (1_700_000_123,
+                                                                       456_789_012)
+    assert candidate_values(c, 'pose') == c.pose
 
 
 def test_rows_follow_columns() -> None:

@@ -103,6 +103,9 @@ def test_fleet_refusals(tmp_path: Path, robots: tuple[Path, Path],
                         capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(ConfigError, match='two or more bags'):
         replay_fleet(robots[:1], CFG)
+    # The API refuses what belongs to one bag as the command line does.
+    with pytest.raises(ConfigError, match='poses, load_db take one bag'):
+        replay_fleet(robots, CFG, poses='p.txt', load_db='db.npz')
     # Options that belong to one bag are a bad command line with several.
     with pytest.raises(SystemExit) as exc:
         main([str(robots[0]), str(robots[1]), '--save-db', str(tmp_path / 'x.npz')])

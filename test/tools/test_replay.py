@@ -15,6 +15,7 @@ from project_paths import CONFIG_DIR  # noqa: E402
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import LoopDetector
+from solid_ros.core.errors import ConfigError
 from solid_ros.core.verification import REASONS
 from solid_ros.formats.bags import POINTCLOUD2, BagWriter, write_cloud_bag
 from solid_ros.formats.pointcloud2 import CloudLayout, encode_points
@@ -642,6 +643,14 @@ def test_descriptor_only_sweeps_the_distance_threshold(tmp_path: Path, bags: dic
     text = '\n'.join(summary_lines(result))
     assert 'by place' in text and 'distance_threshold: ' in text
     assert 'of best matches within 5.0 m' in text
+
+
+def test_bad_options_are_refused_before_the_bag_is_read(tmp_path: Path) -> None:
+    # The same checks as the command line's (test_options.py), for the API.
+    for change, flag in (({'radius': -1.0}, '--radius'), ({'target_precision': 2.0},
+                                                           '--target-precision')):
+        with pytest.raises(ConfigError, match=f'^{flag} must be'):
+            replay(tmp_path / 'no_bag', TEST_CFG, **change)
 
 
 def test_bad_replay_options_exit_2(capsys: pytest.CaptureFixture[str],

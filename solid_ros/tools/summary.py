@@ -1,0 +1,114 @@
+"""The human summary printed at the end of a replay."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from solid_ros.tools.pipeline import STAGES
+from solid_ros.tools.reports import PROG
+from solid_ros.tools.result import ReplayResult
+
+__all__ = ['summary_lines']
+
+
+def _fmt(v: Any, spec: str = '.3f') -> str:
+    if v is None:
+        return 'n/a'
+    if isinstance(v, float) and not math.isfinite(v):
+        return 'inf'
+    return format(v, spec)
+
+
+def summary_lines(r: ReplayResult) -> list[str]:
+    """The human summary printed at the end of a run."""
+    lines = _run_lines(r)
+    m = r.report['metrics']
+    if m is None:
+        lines.append('  evaluation        none (no reference poses: give --poses or an '
+                     'Odometry topic)')
+        return lines
+    lines += _score_lines(r.report, r.config.verify)
+    if r.report['loop_sweep'] is not None:
+        lines += _sweep_lines(r.report['loop_sweep'], m['radius_m'], r.config.verify)
+    if r.files:
+        lines.append(f'  outputs           {", ".join(str(f) for f in r.files)}')
+    return lines
+
+
+def _run_lines(r: ReplayResult) -> list[str]:
+    """What was read, published and how fast."""
+    rep = r.report
+    t = rep['timings']
+    cfg = r.config
+    stages = '  '.join(f'{k} {_fmt(t[f"{k}_ms"]["p50"], ".2f")}' for k in STAGES)
+    clouds = rep['keyframe_clouds']
+    lines = [
+        f'{PROG} summary',
+        f'  bag               {r.bag} ({rep["format"]}, {r.topic})',
+        f'  integrity         {rep["integrity"]}',
+        f'  scans             {r.messages} read, {r.skipped} skipped, {r.keyframes} keyframes',
+        f'  loops published   {len(r.candidates)} ('
+        + (f'verified by registration; {_reasons(rep["verification"]["reasons"])})'
+           if cfg.verify else f'descriptor only, distance_threshold {cfg.distance_threshold})'),
+        f'  throughput        {_fmt(t["scans_per_sec"], ".1f")} scans/s end to end '
+        f'({t["wall_sec"]:.2f} s)',
+        f'  stage ms p50      {stages}',
+        f'  database          {rep["database"]["size"]} scans, '
+        f'{rep["database"]["bytes"] / 1e6:.2f} MB ({rep["database"]["bytes_per_scan"]} bytes '
+        f'per scan); keyframe clouds {clouds["kept"]}, {clouds["mb"]:.2f} MB, '
+        f'{clouds["dropped"]} dropped',
+    ]
+    return lines
+
+
+def _score_lines(rep: dict[str, Any], verify: bool) -> list[str]:
+    """The scores against the reference poses."""
+    m = rep['metrics']
+    loops = rep['loops']
+    te, re_ = loops['trans_err_m'], loops['rot_err_deg']
+    lines = [
+        f'  reference         {rep["reference"]} (radius {m["radius_m"]} m; '
+        f'{m["queries_with_true_loop"]} of {m["queries"]} queries have a true loop)',
+        f'  published loops   {loops["correct"]} correct, {loops["false"]} false (pose within '
+        f'{loops["max_error_m"]} m / {loops["max_error_deg"]} deg): precision '
+        f'{_fmt(loops["precision"])}, recall {_fmt(loops["recall"])}',
+        f'  pose error        median {_fmt(te["median"], ".3f")} m, {_fmt(re_["median"], ".2f")}'
+        f' deg; p95 {_fmt(te["p95"], ".3f")} m, {_fmt(re_["p95"], ".2f")} deg '
+        f'(n={te["count"]})',
+        f'  descriptor        Recall@1 {_fmt(m["recall_at_1"])}, F1max {_fmt(m["f1_max"])}, '
+        f'ROC AUC {_fmt(m["roc_auc"])}',
+    ]
+    if not verify:  # the pose is only a yaw: also score the places, as the back end will
+        acc = m['accepted']
+        lines.append(f'  by place          {acc["true"]} true, {acc["false"]} false best matches '
+                     f'within {m["radius_m"]} m: precision {_fmt(acc["precision"])}, recall '
+                     f'{_fmt(acc["recall"])} (descriptor only: the pose carries no translation)')
+    return lines
+
+
+def _sweep_lines(sweep: dict[str, Any], radius_m: float, verify: bool) -> list[str]:
+    """The sweep for the target precision and the line to paste."""
+    lines = []
+    rows = sweep.get('rows', [])
+    if rows:
+        lines.append(f'  {sweep["parameter"]} sweep   threshold  precision  recall  tp   fp')
+        step = max(1, len(rows) // 10)
+        for row in rows[::step]:
+            lines.append(f'                    {row["threshold"]:<9}  '
+                         f'{row["precision"]:.3f}      {row["recall"]:.3f}   '
+                         f'{row["tp"]:<4} {row["fp"]}')
+    target = sweep['target_precision']
+    if sweep['recommended'] is None:
+        lines.append(f'  no {sweep["parameter"]} reaches precision {target} on this data')
+        return lines
+    basis = 'of published loops by pose' if verify else f'of best matches within {radius_m} m'
+    lines.append('  paste into YAML:')
+    lines.append(f'    {sweep["parameter"]}: {sweep["recommended"]}   # precision >= '
+                 f'{target} {basis} on this data, recall {_fmt(sweep["recall"])}')
+    return lines
+
+
+def _reasons(counts: dict[str, int]) -> str:
+    return ', '.join(f'{k} {v}' for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) \
+        or 'nothing tried'

@@ -1,0 +1,132 @@
+"""Tests of solid_ros.tools.pipeline: one record per cloud, odometry source -> detector."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from solid_ros.core.config import NodeConfig, SolidConfig
+from solid_ros.core.detector import LoopDetector
+from solid_ros.core.geometry import pose_to_vector
+from solid_ros.core.odometry import OdomSample
+from solid_ros.formats.bags import CloudScan, write_cloud_bag
+from solid_ros.tools.options import ReplayOptions
+from solid_ros.tools.pipeline import ReplayPipeline, ScanLog, published_best
+
+# Places 0..4, then 0..2 again; descriptor only, so no registration is needed.
+ROUTE = [0, 1, 2, 3, 4, 0, 1, 2]
+CFG = SolidConfig(exclude_recent_frames=3, distance_threshold=0.02, verify=False)
+T0 = 10**18
+
+
+def _place(k: int, n: int = 3000) -> np.ndarray:
+    rng = np.random.default_rng(500 + k)
+    r = rng.choice(rng.uniform(5.0, 60.0, size=4), size=n) + rng.normal(scale=1.0, size=n)
+    az = rng.uniform(-np.pi, np.pi, size=n)
+    el = np.radians(rng.uniform(-24.0, 1.5, size=n))
+    return np.stack([r * np.cos(az) * np.cos(el), r * np.sin(az) * np.cos(el),
+                     r * np.sin(el)], axis=1).astype(np.float32)
+
+
+def _pose(i: int) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, 3] = [2.0 * i, 0.5 * i, 0.0]
+    return out
+
+
+@pytest.fixture(scope='module')
+def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    scans = [(_place(k), T0 + i * 100_000_000, _pose(i)) for i, k in enumerate(ROUTE)]
+    return write_cloud_bag(tmp_path_factory.mktemp('pipeline') / 'bag', scans, 'mcap')
+
+
+def test_one_record_per_cloud_with_its_odometry(bag: Path) -> None:
+    direct = LoopDetector(CFG)
+    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+        assert pipeline.inputs.count == len(ROUTE) and pipeline.inputs.odometry_fed
+        assert pipeline.inputs.odom_topic == '/odom'
+        records = list(pipeline.run())
+    assert [r.seq for r in records] == list(range(len(ROUTE)))
+    for i, rec in enumerate(records):
+        assert rec.odom is not None and rec.odom.stamp_ns == rec.stamp_ns == T0 + i * 10**8
+        np.testing.assert_allclose(rec.odom.pose, _pose(i))
+        assert rec.result is not None and not rec.skipped
+        # The same as handing the scan and its pose to a detector directly.
+        want = direct.process(_place(ROUTE[i]), rec.stamp_ns, pose=_pose(i))
+        assert (rec.result.keyframe, rec.result.loops, rec.result.best) == (
+            want.keyframe, want.loops, want.best)
+    loops = [(c.query_index, c.match_index) for r in records for c in r.result.loops]
+    assert loops == [(5, 0), (6, 1), (7, 2)]
+
+
+class _Shifted:
+    """An odometry source of its own: the pose of each cloud's place, shifted, and the clouds
+    it was asked about (as one computing odometry from the points would see them)."""
+
+    name = 'shifted'
+
+    def __init__(self) -> None:
+        self.sizes: list[int] = []
+
+    def pose_for(self, stamp_ns: int, points: np.ndarray | None = None) -> OdomSample | None:
+        assert points is not None
+        self.sizes.append(len(points))
+        pose = _pose((stamp_ns - T0) // 100_000_000)
+        pose[2, 3] = 7.0
+        return OdomSample(stamp_ns, pose)
+
+
+def test_another_odometry_source_plugs_in(bag: Path) -> None:
+    source = _Shifted()
+    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+        pipeline.odometry = source
+        records = list(pipeline.run())
+    assert source.sizes == [3000] * len(ROUTE)
+    for rec in records:
+        assert rec.odom is not None and rec.result is not None
+        np.testing.assert_allclose(rec.result.pose, pose_to_vector(rec.odom.pose))
+        assert rec.result.pose[2] == 7.0
+    # Without odometry for the detector the scans still go through, with no pose.
+    options = ReplayOptions(node_config=NodeConfig(use_odom=False))
+    with ReplayPipeline(bag, LoopDetector(CFG), options) as pipeline:
+        assert pipeline.odometry is None and not pipeline.inputs.odometry_fed
+        assert pipeline.inputs.odometry is not None  # still read, as the reference
+        assert all(r.odom is None and r.result is not None and r.result.pose is None
+                   for r in pipeline.run())
+
+
+def test_skipped_clouds_are_records_too(bag: Path) -> None:
+    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+        broken = pipeline.step(CloudScan(3, T0, None, 'truncated data'))
+        assert broken.result is None and broken.skipped == 'truncated data'
+        undecoded = pipeline.step(CloudScan(4, T0, None))
+        assert undecoded.skipped == 'undecodable'
+        nan = pipeline.step(CloudScan(5, T0, np.full((50, 3), np.nan, np.float32)))
+        assert nan.result is None and nan.skipped.startswith('no usable point')
+        assert pipeline.detector.num_keyframes == 0  # nothing reached the database
+    log = ScanLog()
+    for rec in (broken, undecoded, nan):
+        log.add(rec)
+    assert (log.messages, log.decoded, log.skipped) == (
+        3, 0, [(3, 'truncated data'), (4, 'undecodable'), (5, nan.skipped)])
+
+
+def test_log_keeps_keyframes_without_descriptors(bag: Path) -> None:
+    with ReplayPipeline(bag, LoopDetector(CFG.replace(keyframe_min_sec=0.15)),
+                        ReplayOptions()) as pipeline:
+        records = list(pipeline.run())
+    assert any(r.result is not None and r.result.descriptor is not None for r in records)
+    log = ScanLog()
+    for rec in records:
+        log.add(rec)
+    kept = [r for r in records if r.result is not None and r.result.keyframe]
+    assert 0 < len(kept) < len(records)  # every other scan is gated out
+    assert [seq for seq, _ in log.keyframes] == [r.seq for r in kept]
+    assert all(res.descriptor is None for res in log.results)
+    assert log.decoded == log.messages == len(records)
+    assert log.candidates == [c for r in kept for c in r.result.loops]
+    assert [published_best(res) for res in log.results] == [
+        res.best is not None and bool(res.loops) for res in log.results]
+    assert len(log.stage_ms('describe')) == len(kept)
