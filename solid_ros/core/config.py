@@ -13,7 +13,7 @@ import dataclasses
 import hashlib
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
@@ -21,13 +21,14 @@ from typing import Any, ClassVar, TypeVar
 from solid_ros.core.errors import ConfigError
 from solid_ros.core.paramfile import load_yaml_parameters
 
-__all__ = ['ParamSpec', 'SolidConfig', 'NodeConfig', 'check_parameters', 'load_parameter_file',
-           'load_yaml_parameters', 'param_specs', 'type_message']
+__all__ = ['ParamSpec', 'SolidConfig', 'NodeConfig', 'check_parameters',
+           'is_standard_ros_parameter', 'load_parameter_file', 'load_yaml_parameters',
+           'param_specs', 'type_message', 'unknown_parameters']
 
 _C = TypeVar('_C', bound='_Schema')
 
-# Keys every ROS node accepts; a shared YAML file may carry them.
-_ROS_STANDARD_KEYS = frozenset({'use_sim_time', 'qos_overrides', 'start_type_description_service'})
+# Parameters every rclpy node accepts besides its own (qos_overrides.<topic>... nests).
+_ROS_STANDARD = frozenset({'use_sim_time', 'start_type_description_service'})
 
 
 @dataclass(frozen=True)
@@ -107,11 +108,9 @@ class _Schema:
     def from_dict(cls: type[_C], values: Mapping[str, Any], *, strict: bool = True) -> _C:
         """Build from a mapping; with ``strict`` unknown keys raise :class:`ConfigError`."""
         names = {s.name for s in cls.specs()}
-        if strict:
-            known = names | _all_names() | _ROS_STANDARD_KEYS
-            for key in values:
-                if key not in known and not key.startswith('qos_overrides.'):
-                    raise ConfigError(f'unknown parameter {key!r}')
+        unknown = unknown_parameters(values) if strict else []
+        if unknown:
+            raise ConfigError(f'unknown parameter {unknown[0]!r}')
         return cls(**{k: v for k, v in values.items() if k in names})
 
     @classmethod
@@ -357,8 +356,17 @@ def param_specs() -> tuple[ParamSpec, ...]:
     return SolidConfig.specs() + NodeConfig.specs()
 
 
-def _all_names() -> set[str]:
-    return {s.name for s in SolidConfig.specs()} | {s.name for s in NodeConfig.specs()}
+def is_standard_ros_parameter(name: str) -> bool:
+    """Whether ``name`` is a parameter every rclpy node accepts (``use_sim_time``,
+    ``qos_overrides.*``, ...), which a shared parameter file may carry."""
+    return name in _ROS_STANDARD or name == 'qos_overrides' or name.startswith('qos_overrides.')
+
+
+def unknown_parameters(names: Iterable[str]) -> list[str]:
+    """The names, sorted, that are neither a setting of the node nor a standard ROS parameter
+    (typos in a parameter file or a ``-p`` override)."""
+    known = {s.name for s in param_specs()}
+    return sorted(n for n in names if n not in known and not is_standard_ros_parameter(n))
 
 
 def check_parameters(values: Mapping[str, Any], source: str | Path | None = None) -> None:
@@ -376,7 +384,7 @@ def check_parameters(values: Mapping[str, Any], source: str | Path | None = None
     for key, value in values.items():
         spec = specs.get(key)
         if spec is None:
-            if key in _ROS_STANDARD_KEYS or key.startswith('qos_overrides.'):
+            if is_standard_ros_parameter(key):
                 continue
             raise ConfigError(f'{prefix}unknown parameter {key!r} (see config/solid.yaml for '
                               'the valid names)')

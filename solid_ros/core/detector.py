@@ -57,7 +57,7 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import DescriptorDatabase, Match, unit_vector
 from solid_ros.core.descriptor import Descriptor, describe, preprocess, voxel_downsample
-from solid_ros.core.errors import CloudError, ConfigError, SolidError
+from solid_ros.core.errors import CloudError, ConfigError
 from solid_ros.core.geometry import (
     matrix_to_vector,
     pose_to_vector,
@@ -71,6 +71,7 @@ from solid_ros.core.matching import estimate_yaw, heading_hypotheses
 from solid_ros.core.odometry import OdometryPath, disagreement
 from solid_ros.core.reasons import Reason
 from solid_ros.core.registration import KeyframeCloud
+from solid_ros.core.stamps import check_stamp
 from solid_ros.core.verification import Verification, Verifier
 
 __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
@@ -82,20 +83,6 @@ _NAN_COV: tuple[float, ...] = (math.nan,) * 36
 # there is none.
 CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | Reason']
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-
-_INT64 = (-(2**63), 2**63 - 1)
-
-
-def _stamp(stamp_ns: Any) -> int:
-    """The stamp as an int that the database's int64 arrays hold, else SolidError."""
-    try:
-        stamp = int(stamp_ns)
-    except (TypeError, ValueError, OverflowError) as err:
-        raise SolidError(f'stamp {stamp_ns!r} is not an integer number of nanoseconds') from err
-    if not _INT64[0] <= stamp <= _INT64[1]:
-        raise SolidError(f'stamp {stamp} ns is outside the int64 range')
-    return stamp
-
 
 @dataclass(frozen=True)
 class LoopCandidate:
@@ -356,7 +343,7 @@ class LoopDetector:
         proposal = self.propose(points, stamp_ns, pose)
         if proposal is None:
             vec = pose_to_vector(pose) if pose is not None else None
-            return ScanResult(_stamp(stamp_ns), pose=vec)
+            return ScanResult(check_stamp(stamp_ns), pose=vec)
         return self.verify(proposal)
 
     def propose(self, points: npt.ArrayLike, stamp_ns: int,
@@ -370,7 +357,7 @@ class LoopDetector:
             CloudError: no usable point (see the module docstring); nothing changed.
             SolidError: malformed points, pose or stamp (outside int64).
         """
-        stamp = _stamp(stamp_ns)
+        stamp = check_stamp(stamp_ns)
         vec = pose_to_vector(pose) if pose is not None else None
         if not self.is_keyframe(stamp, vec):
             self._check_usable(self._level(points))  # refused alike, kept or not
@@ -398,7 +385,7 @@ class LoopDetector:
             CloudError: the R-SOLiD is all zero (or not finite); nothing changed.
             SolidError: bad stamp or pose.
         """
-        stamp = _stamp(stamp_ns)
+        stamp = check_stamp(stamp_ns)
         vec = pose_to_vector(pose) if pose is not None else None
         if not unit_vector(desc.r_solid)[1]:
             raise CloudError('no usable point: the R-SOLiD is all zero or not finite')
@@ -660,7 +647,7 @@ class LoopDetector:
         """
         vec = pose_to_vector(pose) if pose is not None else None
         return self.database.add_foreign(int(robot), int(index), r_solid, heading,
-                                         _stamp(stamp_ns), vec)
+                                         check_stamp(stamp_ns), vec)
 
     def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
                                                       FloatArray | None]]:

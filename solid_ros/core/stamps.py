@@ -7,9 +7,31 @@ seconds, so pairing by stamp and comparing stamps never suffer rounding. ROS mes
 
 from __future__ import annotations
 
-__all__ = ['NS_PER_SEC', 'format_stamp', 'join_stamp', 'seconds_to_ns', 'split_stamp']
+from typing import Any
+
+from solid_ros.core.errors import SolidError
+
+__all__ = ['INT64', 'NS_PER_SEC', 'check_stamp', 'format_stamp', 'join_stamp', 'seconds_to_ns',
+           'split_stamp']
 
 NS_PER_SEC = 1_000_000_000
+# Range of ROS int64 fields and of the database's stamp arrays.
+INT64 = (-(2**63), 2**63 - 1)
+
+
+def check_stamp(stamp_ns: Any) -> int:
+    """The stamp as an int that the database's int64 arrays hold.
+
+    Raises:
+        SolidError: not an integer number of nanoseconds, or outside int64.
+    """
+    try:
+        stamp = int(stamp_ns)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise SolidError(f'stamp {stamp_ns!r} is not an integer number of nanoseconds') from err
+    if not INT64[0] <= stamp <= INT64[1]:
+        raise SolidError(f'stamp {stamp} ns is outside the int64 range')
+    return stamp
 
 
 def split_stamp(stamp_ns: int) -> tuple[int, int]:

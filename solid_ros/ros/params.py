@@ -27,16 +27,22 @@ from rclpy.exceptions import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from solid_ros.core.config import NodeConfig, ParamSpec, SolidConfig, param_specs, type_message
+from solid_ros.core.config import (
+    NodeConfig,
+    ParamSpec,
+    SolidConfig,
+    is_standard_ros_parameter,
+    param_specs,
+    type_message,
+    unknown_parameters,
+)
 from solid_ros.core.errors import ConfigError
+from solid_ros.core.stamps import INT64
 
 __all__ = ['apply_changes', 'declare_all', 'make_descriptor', 'unknown_overrides']
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
-_INT64 = (-(2**63), 2**63 - 1)
-# Parameters every rclpy node accepts besides its own.
-_STANDARD = frozenset({'use_sim_time', 'start_type_description_service'})
 
 
 def make_descriptor(spec: ParamSpec) -> ParameterDescriptor:
@@ -50,16 +56,15 @@ def make_descriptor(spec: ParamSpec) -> ParameterDescriptor:
         high = sys.float_info.max if spec.high is None else float(spec.high)
         desc.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
     elif spec.type is int and (spec.low is not None or spec.high is not None):
-        low_i = _INT64[0] if spec.low is None else int(spec.low)
-        high_i = _INT64[1] if spec.high is None else int(spec.high)
+        low_i = INT64[0] if spec.low is None else int(spec.low)
+        high_i = INT64[1] if spec.high is None else int(spec.high)
         desc.integer_range = [IntegerRange(from_value=low_i, to_value=high_i, step=0)]
     return desc
 
 
 def unknown_overrides(names: Iterable[str]) -> list[str]:
     """Return the override names that are not settings of the node (typos in a YAML file)."""
-    known = {s.name for s in param_specs()} | _STANDARD
-    return sorted(n for n in names if n not in known and not n.startswith('qos_overrides.'))
+    return unknown_parameters(names)
 
 
 def declare_all(node: Node) -> tuple[SolidConfig, NodeConfig]:
@@ -109,7 +114,7 @@ def apply_changes(solid: SolidConfig, node_cfg: NodeConfig,
     for p in params:
         spec = specs.get(p.name)
         if spec is None:
-            if p.name in _STANDARD:
+            if is_standard_ros_parameter(p.name):
                 continue
             raise ConfigError(f'{p.name}: unknown parameter')
         if spec.read_only:
