@@ -66,11 +66,10 @@ from solid_ros.core.geometry import (
     rpy_matrix,
     vector_to_matrix,
 )
-from solid_ros.core.keyframes import CloudStore
+from solid_ros.core.keyframes import CloudStore, KeyframeCloud
 from solid_ros.core.matching import estimate_yaw, heading_hypotheses
 from solid_ros.core.odometry import OdometryPath, disagreement
 from solid_ros.core.reasons import Reason
-from solid_ros.core.registration import KeyframeCloud
 from solid_ros.core.stamps import check_stamp
 from solid_ros.core.verification import Verification, Verifier
 

@@ -1,19 +1,39 @@
 """Keyframe clouds kept for verification, bounded in count and bytes.
 
-Each stored keyframe may have a downsampled float32 cloud (see
-:class:`~solid_ros.core.registration.KeyframeCloud`), keyed by the database sequence number
-of its scan. Clouds are dropped oldest first when the store exceeds ``cloud_capacity`` clouds
-or ``cloud_memory_mb``, and together with their scan when the database evicts it. A scan
-without a cloud stays searchable but its matches cannot be verified (reason ``no_cloud``).
+Each stored keyframe may have a downsampled float32 cloud (:class:`KeyframeCloud`), keyed by
+the database sequence number of its scan. Clouds are dropped oldest first when the store
+exceeds ``cloud_capacity`` clouds or ``cloud_memory_mb``, and together with their scan when the
+database evicts it. A scan without a cloud stays searchable but its matches cannot be verified
+(reason ``no_cloud``).
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import dataclass
 
-from solid_ros.core.registration import KeyframeCloud
+import numpy as np
+import numpy.typing as npt
 
-__all__ = ['CloudStore']
+__all__ = ['CloudStore', 'KeyframeCloud']
+
+
+@dataclass(frozen=True)
+class KeyframeCloud:
+    """A stored keyframe cloud: float32 points, structure first.
+
+    Attributes:
+        points: (N, 3) float32 in the keyframe's levelled sensor frame.
+        n_struct: the first ``n_struct`` rows are structure points.
+    """
+
+    points: npt.NDArray[np.float32]
+    n_struct: int
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the points."""
+        return int(self.points.nbytes)
 
 
 class CloudStore:

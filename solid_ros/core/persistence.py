@@ -50,8 +50,7 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import POSE_FIELDS, DescriptorDatabase
 from solid_ros.core.errors import DatabaseError
-from solid_ros.core.keyframes import CloudStore
-from solid_ros.core.registration import KeyframeCloud
+from solid_ros.core.keyframes import CloudStore, KeyframeCloud
 
 __all__ = ['FORMAT', 'VERSION', 'NpyHeader', 'check_save_target', 'is_database',
            'load_database', 'read_database', 'read_npz_headers', 'remove_stale_temporaries',

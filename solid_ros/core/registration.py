@@ -27,6 +27,7 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
 from solid_ros.core.geometry import rot_z
+from solid_ros.core.keyframes import KeyframeCloud
 
 __all__ = ['STRUCTURE_MAX_NZ', 'Alignment', 'KeyframeCloud', 'Query', 'RegistrationSettings',
            'Source', 'Support', 'align_coarse', 'align_fine', 'load_small_gicp']
@@ -85,24 +86,6 @@ class RegistrationSettings:
     def neighbour_distance(self) -> float:
         """Nearest-neighbour distance limit of a supporting point, metres."""
         return 2.0 * self.voxel
-
-
-@dataclass(frozen=True)
-class KeyframeCloud:
-    """A stored keyframe cloud: float32 points, structure first.
-
-    Attributes:
-        points: (N, 3) float32 in the keyframe's levelled sensor frame.
-        n_struct: the first ``n_struct`` rows are structure points.
-    """
-
-    points: npt.NDArray[np.float32]
-    n_struct: int
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held by the points."""
-        return int(self.points.nbytes)
 
 
 class Query:

@@ -67,10 +67,10 @@ import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.geometry import rot_z, yaw_of
+from solid_ros.core.keyframes import KeyframeCloud
 from solid_ros.core.reasons import VERIFY_REASONS, Reason
 from solid_ros.core.registration import (
     Alignment,
-    KeyframeCloud,
     Query,
     RegistrationSettings,
     Source,

@@ -40,7 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
-from solid_ros.core.registration import KeyframeCloud
+from solid_ros.core.keyframes import KeyframeCloud
 
 __all__ = ['CatchUpRequest', 'CloudReply', 'CloudRequest', 'DescriptorMessage',
            'MAX_CLOUD_POINTS', 'PeerMessageError', 'decode', 'encode']

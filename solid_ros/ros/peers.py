@@ -42,7 +42,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt8MultiArray
 
 from solid_ros.core.detector import Proposal
-from solid_ros.core.registration import KeyframeCloud
+from solid_ros.core.keyframes import KeyframeCloud
 from solid_ros.formats.peers import (
     CatchUpRequest,
     CloudReply,

@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import CloudFetcher, LoopCandidate, LoopDetector, Proposal, ScanResult
-from solid_ros.core.registration import KeyframeCloud
+from solid_ros.core.keyframes import KeyframeCloud
 from solid_ros.formats.peers import DescriptorMessage
 
 __all__ = ['SharedDetector']

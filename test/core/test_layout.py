@@ -1,4 +1,11 @@
-"""The core stays ROS-free: it imports no rclpy and nothing from the adapter subpackages."""
+"""The rooms of the package and the one direction of their imports.
+
+core (pure numpy: no ROS, no bag or plot library, nothing of the rooms above) <- formats
+(message and file formats) <- sim (the simulator) ; ros (the node) and tools (offline tools)
+are sibling adapters over core and formats (tools also drive the simulator); nothing imports
+ros or tools from below, and neither imports the other. ``solid_ros.runtime`` is a leaf that
+imports nothing of the package, so every room may use it.
+"""
 
 from __future__ import annotations
 
@@ -7,11 +14,20 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from project_paths import ROOT
 
-CORE = ROOT / 'solid_ros' / 'core'
-ADAPTERS = ('solid_ros.formats', 'solid_ros.ros', 'solid_ros.tools', 'solid_ros.sim')
-FORBIDDEN = ('rclpy', 'rosbags', 'mcap', 'matplotlib', *ADAPTERS)
+PKG = ROOT / 'solid_ros'
+ROOMS = ('core', 'formats', 'sim', 'ros', 'tools')
+# What each room may import of the package (besides itself and the runtime leaf).
+ALLOWED = {
+    'core': set(),
+    'formats': {'core'},
+    'sim': {'core', 'formats'},
+    'ros': {'core', 'formats'},
+    'tools': {'core', 'formats', 'sim'},
+}
+CORE_FORBIDDEN = ('rclpy', 'rosbags', 'mcap', 'matplotlib')
 
 
 def _imports(path: Path) -> list[str]:
@@ -25,12 +41,39 @@ def _imports(path: Path) -> list[str]:
     return names
 
 
-def test_core_sources_import_no_adapter() -> None:
-    modules = sorted(CORE.glob('*.py'))
-    assert len(modules) >= 8
+def _room_of(module: str) -> str | None:
+    """The room (or top-level module) of a solid_ros module; None outside the package."""
+    parts = module.split('.')
+    return parts[1] if parts[0] == 'solid_ros' and len(parts) > 1 else None
+
+
+def test_every_module_lives_in_a_room_or_is_a_leaf() -> None:
+    top = sorted(p.stem for p in PKG.glob('*.py'))
+    assert top == ['__init__', 'runtime'], top
+    for path in PKG.rglob('*.py'):
+        assert path.relative_to(PKG).parts[0] in (*ROOMS, '__init__.py', 'runtime.py'), path
+
+
+@pytest.mark.parametrize('room', ROOMS)
+def test_imports_run_one_way(room: str) -> None:
+    modules = sorted((PKG / room).rglob('*.py'))
+    assert modules
     for path in modules:
+        for name in _imports(path):
+            other = _room_of(name)
+            if other is None or other == room or other == 'runtime':
+                continue
+            assert other in ALLOWED[room], f'{room}/{path.name} imports {name}'
+
+
+def test_the_runtime_leaf_imports_nothing_of_the_package() -> None:
+    assert not [n for n in _imports(PKG / 'runtime.py') if n.startswith('solid_ros')]
+
+
+def test_core_imports_no_ros_bag_or_plot_library() -> None:
+    for path in sorted((PKG / 'core').glob('*.py')):
         bad = [n for n in _imports(path)
-               if any(n == f or n.startswith(f + '.') for f in FORBIDDEN)]
+               if any(n == f or n.startswith(f + '.') for f in CORE_FORBIDDEN)]
         assert not bad, f'{path.name} imports {bad}'
 
 
@@ -40,5 +83,6 @@ def test_importing_the_package_loads_no_adapter() -> None:
             'print("\\n".join(sorted(sys.modules)))')
     out = subprocess.run([sys.executable, '-c', code], cwd=ROOT, capture_output=True,
                          text=True, check=True).stdout.split()
-    loaded = [m for m in out if any(m == f or m.startswith(f + '.') for f in FORBIDDEN)]
+    adapters = (*CORE_FORBIDDEN, *(f'solid_ros.{r}' for r in ROOMS if r != 'core'))
+    loaded = [m for m in out if any(m == f or m.startswith(f + '.') for f in adapters)]
     assert loaded == []

@@ -14,8 +14,9 @@ from solid_ros.core.config import SolidConfig
 from solid_ros.core.descriptor import describe
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.geometry import rpy_matrix
+from solid_ros.core.keyframes import KeyframeCloud
 from solid_ros.core.matching import heading_hypotheses
-from solid_ros.core.registration import KeyframeCloud, Source
+from solid_ros.core.registration import Source
 from solid_ros.core.verification import REASONS, Verifier, registration_settings
 from solid_ros.sim import DEMO_SENSORS
 from solid_ros.sim.drive import Drive, DriveConfig
