@@ -18,7 +18,7 @@ setup() {
     exit 1
   fi
   "$venv/bin/python" -m pip install --quiet --upgrade pip
-  "$venv/bin/python" -m pip install --quiet -e '.[test,ros-pypi]'
+  "$venv/bin/python" -m pip install --quiet -e '.[test,ros-pypi,kiss]'
   touch "$stamp"
 }
 
