@@ -4,7 +4,10 @@ Typical use::
 
     from solid_ros.sim import simulate
     for scan in simulate(seed=0, sensor='hdl64', num_scans=200):
-        scan.points, scan.pose, scan.stamp_ns, scan.label
+        scan.points, scan.odom, scan.pose, scan.stamp_ns, scan.label
+
+``scan.pose`` is the reference pose, ``scan.odom`` the drive's odometry (drifting by about
+1.5 % of the path unless ``perfect_odometry=True``; :mod:`solid_ros.sim.odometry`).
 
 and ``ensure_demo_bag()`` for the cached demo bag the demo command replays. Options (all
 :class:`DriveConfig` fields, also keywords of ``simulate`` and ``ensure_demo_bag``): sensor
@@ -37,6 +40,7 @@ from solid_ros.sim.lidar import (
     sensor_model,
     vlp16_like,
 )
+from solid_ros.sim.odometry import OdometryDrift
 from solid_ros.sim.scene import SCENE_STYLES, Scene, StreetGrid, build_scene
 from solid_ros.sim.trajectory import (
     LABELS,
@@ -49,9 +53,9 @@ from solid_ros.sim.trajectory import (
 
 __all__ = [
     'DEMO_DEFAULTS', 'DEMO_SENSORS', 'LABELS', 'PRESETS', 'ROUTES', 'SCENE_STYLES',
-    'BagSummary', 'Drive', 'DriveConfig', 'LidarModel', 'Scene', 'SimScan', 'StreetGrid',
-    'Trajectory', 'avia_like', 'build_scene', 'build_trajectory', 'cache_root', 'cast_scan',
-    'demo_dir', 'ensure_demo_bag', 'hdl64', 'ouster_like', 'pose_matrix', 'read_kitti_poses',
-    'revisit_labels', 'sensor_model', 'serpentine', 'simulate', 'vlp16_like', 'write_bag',
-    'write_drive',
+    'BagSummary', 'Drive', 'DriveConfig', 'LidarModel', 'OdometryDrift', 'Scene', 'SimScan',
+    'StreetGrid', 'Trajectory', 'avia_like', 'build_scene', 'build_trajectory', 'cache_root',
+    'cast_scan', 'demo_dir', 'ensure_demo_bag', 'hdl64', 'ouster_like', 'pose_matrix',
+    'read_kitti_poses', 'revisit_labels', 'sensor_model', 'serpentine', 'simulate', 'vlp16_like',
+    'write_bag', 'write_drive',
 ]

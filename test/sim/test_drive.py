@@ -25,17 +25,25 @@ from solid_ros.sim import (
 from solid_ros.sim.scene import LOOKALIKE_JITTER
 
 
-def test_default_drive_keeps_its_cache_key() -> None:
-    # The keys of the cached demo bags made before the new options existed.
-    hdl = DriveConfig(**DEMO_DEFAULTS)
+def test_drives_of_earlier_versions_keep_their_cache_key() -> None:
+    # The keys of the cached demo bags made before the new options existed: those drives had
+    # perfect odometry, which leaves the odometry's error model out of the key.
+    hdl = DriveConfig(**DEMO_DEFAULTS, perfect_odometry=True)
     assert hdl.fingerprint() == '194e4ed936b62d53'
-    assert demo_dir(hdl, '/c').name == f'hdl64-194e4ed936b62d53-{__version__}'
-    avia = DriveConfig(**{**DEMO_DEFAULTS, 'sensor': DEMO_SENSORS['avia_like']})
+    avia = DriveConfig(**{**DEMO_DEFAULTS, 'sensor': DEMO_SENSORS['avia_like']},
+                       perfect_odometry=True)
     assert avia.fingerprint() == 'f1146a71d351df42'
     # The defaults spelt out are the same drive.
     spelt = DriveConfig(**DEMO_DEFAULTS, route='revisits', nx=4, ny=3, scene='varied',
-                        facade_detail=False, mount_roll_deg=0.0, mount_pitch_deg=0.0)
+                        facade_detail=False, mount_roll_deg=0.0, mount_pitch_deg=0.0,
+                        perfect_odometry=True, odom_scale_error=0.5)
     assert spelt.fingerprint() == hdl.fingerprint()
+    # A drifting odometry writes another /odom: another cache entry, one per error model.
+    drifting = DriveConfig(**DEMO_DEFAULTS)
+    assert demo_dir(hdl, '/c').name == f'hdl64-194e4ed936b62d53-{__version__}'
+    assert drifting.fingerprint() != hdl.fingerprint()
+    assert DriveConfig(**DEMO_DEFAULTS, odom_heading_walk_deg=0.0).fingerprint() != (
+        drifting.fingerprint())
 
 
 def test_default_drive_is_unchanged() -> None:
@@ -55,7 +63,8 @@ def test_default_drive_is_unchanged() -> None:
 @pytest.mark.parametrize('option', [
     {'route': 'no_revisit'}, {'route': ((0, 0), (2, 0))}, {'nx': 5}, {'scene': 'lookalike'},
     {'facade_detail': True}, {'mount_pitch_deg': 3.0}, {'sensor': 'ouster_like'},
-    {'sensor': 'vlp16_like'}])
+    {'sensor': 'vlp16_like'}, {'perfect_odometry': True}, {'odom_scale_error': 0.02},
+    {'odom_heading_bias_deg_per_m': 0.0}, {'odom_position_walk_m': 0.0}])
 def test_every_option_names_another_drive(option: dict[str, object]) -> None:
     assert DriveConfig(**{**DEMO_DEFAULTS, **option}).fingerprint() != DriveConfig(
         **DEMO_DEFAULTS).fingerprint()
