@@ -18,7 +18,7 @@ setup() {
     exit 1
   fi
   "$venv/bin/python" -m pip install --quiet --upgrade pip
-  "$venv/bin/python" -m pip install --quiet -e '.[test,ros-pypi]'
+  "$venv/bin/python" -m pip install --quiet -e '.[test,ros-pypi,kiss]'
   # PyPI has no tf2_msgs wheel: build its TFMessage into the venv so the node can send /tf.
   .ci/build_tf2_msgs.sh "$venv"
   touch "$stamp"

@@ -24,6 +24,8 @@ setup(
         # ROS 2 Jazzy client libraries from PyPI, for machines without a ROS install.
         'ros-pypi': ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces',
                      'ros-jazzy-rmw-fastrtps-cpp', 'colcon-common-extensions'],
+        # KISS-ICP odometry for clouds without odometry (odometry_source: kiss_icp).
+        'kiss': ['kiss-icp'],
     },
     zip_safe=True,
     maintainer='solid_ros maintainers',

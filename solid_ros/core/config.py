@@ -350,6 +350,43 @@ class NodeConfig(_Schema):
     peer_catchup: int = _p(2000, 'Most stored descriptors sent to a robot that joins late '
                            '(and asked for at start)', low=0, high=1_000_000, read_only=True)
 
+    # Odometry source; KISS-ICP's settings (solid_ros.core.kiss_odometry).
+    odometry_source: str = _p('topic', "Pose of each cloud: 'topic' (the odom subscription, a "
+                              "bag's Odometry or a poses file) or 'kiss_icp' (KISS-ICP "
+                              'registers the clouds; pip install kiss-icp)',
+                              choices=('topic', 'kiss_icp'), read_only=True)
+    kiss_max_range: float = _p(50.0, 'KISS-ICP: points beyond this range are not registered, '
+                               'metres', low=1.0, high=1000.0, read_only=True)
+    kiss_min_range: float = _p(0.0, 'KISS-ICP: points within this range are not registered '
+                               '(the vehicle itself), metres', low=0.0, high=100.0,
+                               read_only=True)
+    kiss_voxel_size: float = _p(0.5, "KISS-ICP: voxel of its local map, metres (KISS-ICP's "
+                                'rule of thumb: max range / 100)', low=0.05, high=10.0,
+                                read_only=True)
+    kiss_deskew: bool = _p(False, 'KISS-ICP: motion compensation within a sweep; needs '
+                           'per-point times, which clouds often lack (without them it has no '
+                           'effect)', read_only=True)
+    kiss_max_step_m: float = _p(5.0, 'KISS-ICP: a registration that moves the sensor farther '
+                                'than this from its last pose or from the constant-velocity '
+                                'prediction is a jump: reset, new odometry segment, metres',
+                                low=0.01, high=10000.0, read_only=True)
+    kiss_min_overlap: float = _p(0.3, 'KISS-ICP: least fraction of the structure points of a '
+                                 'registered cloud within two voxels of the previous cloud; '
+                                 'below it the cloud did not register (a jump in the input): '
+                                 'reset, new segment (0 = off)', low=0.0, high=1.0,
+                                 read_only=True)
+    kiss_min_constraint: float = _p(0.01, 'KISS-ICP: least horizontal constraint of a cloud '
+                                    '(smallest eigenvalue of the mean n n^T over its points of '
+                                    'the x-y part of planar normals; about 0 in a corridor); '
+                                    'below it the motion along some direction is unknown: '
+                                    'reset, new segment (0 = off)', low=0.0, high=1.0,
+                                    read_only=True)
+
+    def _validate_cross(self) -> None:
+        if self.kiss_max_range <= self.kiss_min_range:
+            raise ConfigError(f'kiss_max_range: {self.kiss_max_range} must be greater than '
+                              f'kiss_min_range ({self.kiss_min_range})')
+
 
 def param_specs() -> tuple[ParamSpec, ...]:
     """Return the specs of every setting of the node: core first, then node-only."""

@@ -1,8 +1,9 @@
 """Odometry of this session: pairing clouds with poses, and the consistency check of loops.
 
-Pairing: every odometry source (a topic, a bag's Odometry topic, a poses file, and later a
-registration-based odometry) hands the detector a pose per cloud through one interface,
-:class:`OdometrySource`: ``pose_for(stamp_ns, points)`` gives an :class:`OdomSample` or None.
+Pairing: every odometry source (a topic, a bag's Odometry topic, a poses file, KISS-ICP over
+the clouds: :mod:`solid_ros.core.kiss_odometry`) hands the detector a pose per cloud through
+one interface, :class:`OdometrySource`: ``pose_for(stamp_ns, points)`` gives an
+:class:`OdomSample` or None.
 Stamped sources pair by :func:`nearest_stamp`, the one rule used by the node, the replay and
 the fleet replay: the nearest stamp within a tolerance, ties to the earlier one.
 
@@ -46,11 +47,19 @@ class OdomSample:
         pose: 4x4 ``T_odom_sensor`` (finite, a rotation).
         covariance: 6x6 pose covariance (ROS order x, y, z, roll, pitch, yaw) when the source
             gave a usable one (see :func:`usable_covariance`), else None.
+        segment: odometry segment. Poses of one segment are linked by the odometry; a source
+            that loses track (a registration-based one resetting on a cloud it cannot
+            register) starts the next segment, whose poses nothing links to the earlier ones:
+            the back end starts a new graph segment.
+        reason: on the first sample of a new segment, why the source reset (one line for the
+            caller's log); else None.
     """
 
     stamp_ns: int
     pose: FloatArray
     covariance: FloatArray | None = None
+    segment: int = 0
+    reason: str | None = None
 
 
 class OdometrySource(Protocol):

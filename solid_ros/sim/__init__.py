@@ -4,13 +4,15 @@ Typical use::
 
     from solid_ros.sim import simulate
     for scan in simulate(seed=0, sensor='hdl64', num_scans=200):
-        scan.points, scan.pose, scan.stamp_ns, scan.label
+        scan.points, scan.odom, scan.pose, scan.stamp_ns, scan.label
 
-and ``ensure_demo_bag()`` for the cached demo bag the demo command replays. Options (all
-:class:`DriveConfig` fields, also keywords of ``simulate`` and ``ensure_demo_bag``): sensor
-('hdl64', 'avia_like', 'ouster_like', 'vlp16_like' or a :class:`LidarModel`), route
-('revisits', 'no_revisit' or crossings), nx / ny, scene ('varied', 'lookalike'),
-facade_detail, mount_roll_deg / mount_pitch_deg.
+``scan.pose`` is the reference pose, ``scan.odom`` the drive's odometry (drifting by about
+1.5 % of the path unless ``perfect_odometry=True``; :mod:`solid_ros.sim.odometry`).
+``write_drive`` writes a drive as a bag with reference poses (the demo's cache,
+:mod:`solid_ros.tools.demo_cache`). Options (all :class:`DriveConfig` fields, also keywords of
+``simulate``): sensor ('hdl64', 'avia_like', 'ouster_like', 'vlp16_like' or a
+:class:`LidarModel`), route ('revisits', 'no_revisit' or crossings), nx / ny, scene ('varied',
+'lookalike'), facade_detail, mount_roll_deg / mount_pitch_deg, perfect_odometry, odom_*.
 """
 
 from __future__ import annotations
@@ -19,9 +21,6 @@ from solid_ros.sim.bagwriter import (
     DEMO_DEFAULTS,
     DEMO_SENSORS,
     BagSummary,
-    cache_root,
-    demo_dir,
-    ensure_demo_bag,
     read_kitti_poses,
     write_bag,
     write_drive,
@@ -37,6 +36,7 @@ from solid_ros.sim.lidar import (
     sensor_model,
     vlp16_like,
 )
+from solid_ros.sim.odometry import OdometryDrift
 from solid_ros.sim.scene import SCENE_STYLES, Scene, StreetGrid, build_scene
 from solid_ros.sim.trajectory import (
     LABELS,
@@ -49,9 +49,9 @@ from solid_ros.sim.trajectory import (
 
 __all__ = [
     'DEMO_DEFAULTS', 'DEMO_SENSORS', 'LABELS', 'PRESETS', 'ROUTES', 'SCENE_STYLES',
-    'BagSummary', 'Drive', 'DriveConfig', 'LidarModel', 'Scene', 'SimScan', 'StreetGrid',
-    'Trajectory', 'avia_like', 'build_scene', 'build_trajectory', 'cache_root', 'cast_scan',
-    'demo_dir', 'ensure_demo_bag', 'hdl64', 'ouster_like', 'pose_matrix', 'read_kitti_poses',
+    'BagSummary', 'Drive', 'DriveConfig', 'LidarModel', 'OdometryDrift', 'Scene', 'SimScan',
+    'StreetGrid', 'Trajectory', 'avia_like', 'build_scene', 'build_trajectory', 'cast_scan',
+    'hdl64', 'ouster_like', 'pose_matrix', 'read_kitti_poses',
     'revisit_labels', 'sensor_model', 'serpentine', 'simulate', 'vlp16_like', 'write_bag',
     'write_drive',
 ]

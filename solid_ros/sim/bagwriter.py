@@ -1,9 +1,12 @@
-"""Writing a simulated drive as a ROS 2 MCAP bag plus reference poses, and the demo cache.
+"""Writing a simulated drive as a ROS 2 MCAP bag plus reference poses.
 
-A demo directory holds::
+:func:`write_drive` fills a directory with (the demo's cache entry,
+:mod:`solid_ros.tools.demo_cache`)::
 
-    bag/            rosbag2 (metadata version 9, MCAP): /points (PointCloud2), /odom (Odometry)
-    poses.txt       one KITTI 3x4 world <- sensor pose per scan (row-major, 12 numbers)
+    bag/            rosbag2 (metadata version 9, MCAP): /points (PointCloud2), /odom (Odometry:
+                    the drive's odometry, drifting unless ``perfect_odometry``)
+    poses.txt       one KITTI 3x4 world <- sensor reference pose per scan (row-major, 12
+                    numbers): what replays evaluate against
     times.txt       scan stamps in seconds, one per line, same order
     labels.txt      per scan: index, label (new/same/cross/reverse), index of the revisited scan
     drive.json      the DriveConfig that made it (sensor model, route and its crossings, grid
@@ -14,10 +17,7 @@ A demo directory holds::
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,13 +27,12 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import BagError
 from solid_ros.formats import poses
-from solid_ros.formats.bags import ODOMETRY, POINTCLOUD2, BagWriter
-from solid_ros.sim.drive import Drive, DriveConfig, SimScan
+from solid_ros.formats.bags import write_cloud_bag
+from solid_ros.sim.drive import Drive, SimScan
 from solid_ros.sim.lidar import avia_like, hdl64, ouster_like, vlp16_like
 
-__all__ = ['BagSummary', 'DEMO_DEFAULTS', 'DEMO_SENSORS', 'cache_root', 'demo_dir',
-           'ensure_demo_bag',
-           'read_kitti_poses', 'write_bag', 'write_drive']
+__all__ = ['BagSummary', 'DEMO_DEFAULTS', 'DEMO_SENSORS', 'read_kitti_poses', 'write_bag',
+           'write_drive']
 
 POINTS_TOPIC = '/points'
 ODOM_TOPIC = '/odom'
@@ -63,6 +62,9 @@ def write_bag(path: str | Path, scans: Iterable[SimScan], *, frame_id: str = 'li
               labels_path: str | Path | None = None) -> BagSummary:
     """Write scans as a rosbag2 (version 9, MCAP) with ``/points`` and ``/odom``.
 
+    ``/odom`` carries each scan's odometry (:attr:`SimScan.odom`); the reference poses go to
+    ``poses_path``.
+
     Args:
         path: bag directory to create (must not exist).
         scans: scans in time order (any iterable, consumed once).
@@ -76,7 +78,7 @@ def write_bag(path: str | Path, scans: Iterable[SimScan], *, frame_id: str = 'li
         Summary of what was written.
 
     Raises:
-        BagError: the bag cannot be created or written.
+        BagError: the bag cannot be created or written, or a stamp is not after the previous.
     """
     from rosbags.rosbag2.errors import WriterError
 
@@ -84,21 +86,20 @@ def write_bag(path: str | Path, scans: Iterable[SimScan], *, frame_id: str = 'li
     pose_rows: list[npt.NDArray[np.float64]] = []
     times: list[int] = []
     labels: list[str] = []
+
+    def items() -> Iterator[tuple[npt.NDArray[np.float32], int, npt.NDArray[np.float64]]]:
+        for scan in scans:
+            if times and scan.stamp_ns <= times[-1]:
+                raise BagError(f'scan {scan.index}: stamp {scan.stamp_ns} is not after '
+                               f'the previous one ({times[-1]})')
+            pose_rows.append(scan.pose[:3, :4].reshape(-1))
+            times.append(scan.stamp_ns)
+            labels.append(f'{scan.index} {scan.label} {scan.revisit_of}')
+            yield scan.cloud, scan.stamp_ns, scan.odom
+
     try:
-        with BagWriter(path, 'mcap') as writer:
-            writer.add_topic(POINTS_TOPIC, POINTCLOUD2)
-            writer.add_topic(ODOM_TOPIC, ODOMETRY)
-            for scan in scans:
-                stamp = scan.stamp_ns
-                if times and stamp <= times[-1]:
-                    raise BagError(f'scan {scan.index}: stamp {stamp} is not after '
-                                   f'the previous one ({times[-1]})')
-                writer.write(POINTS_TOPIC, stamp, writer.cloud_msg(scan.cloud, stamp, frame_id))
-                writer.write(ODOM_TOPIC, stamp,
-                             writer.odometry_msg(scan.pose, stamp, odom_frame, frame_id))
-                pose_rows.append(scan.pose[:3, :4].reshape(-1))
-                times.append(stamp)
-                labels.append(f'{scan.index} {scan.label} {scan.revisit_of}')
+        write_cloud_bag(path, items(), 'mcap', points_topic=POINTS_TOPIC, odom_topic=ODOM_TOPIC,
+                        frame_id=frame_id, odom_frame_id=odom_frame)
     except (WriterError, OSError) as err:
         raise BagError(f'cannot write bag {path}: {err}') from err
     rows = np.asarray(pose_rows).reshape(-1, 12)
@@ -146,61 +147,4 @@ def write_drive(directory: str | Path, drive: Drive) -> Path:
             'labels': {str(k): int((labels == k).sum()) for k in sorted(set(labels.tolist()))}}
     (d / 'drive.json').write_text(json.dumps(meta, indent=2, sort_keys=True) + '\n',
                                   encoding='utf-8')
-    return bag
-
-
-def cache_root() -> Path:
-    """``$XDG_CACHE_HOME/solid_ros/demo`` (``~/.cache/solid_ros/demo`` by default)."""
-    base = os.environ.get('XDG_CACHE_HOME') or str(Path.home() / '.cache')
-    return Path(base) / 'solid_ros' / 'demo'
-
-
-def demo_dir(config: DriveConfig, cache_dir: str | Path | None = None) -> Path:
-    """Directory a drive is cached in: ``<root>/<sensor>-<hash of config and version>``."""
-    from solid_ros import __version__
-
-    root = Path(cache_dir) if cache_dir is not None else cache_root()
-    tag = f'{config.fingerprint()}-{__version__}'
-    return root / f'{config.model.name}-{tag}'
-
-
-def ensure_demo_bag(cache_dir: str | Path | None = None, **options: Any) -> Path:
-    """Return the demo bag, simulating and writing it first if it is not cached yet.
-
-    The drive is written into a temporary directory beside the cache entry and renamed into
-    place, so an interrupted run never leaves a half-written entry behind.
-
-    Args:
-        cache_dir: cache root; :func:`cache_root` when omitted.
-        **options: :class:`DriveConfig` fields overriding :data:`DEMO_DEFAULTS`.
-
-    Returns:
-        Path of the bag directory; ``poses.txt``, ``times.txt``, ``labels.txt`` and
-        ``drive.json`` sit in its parent.
-
-    Raises:
-        BagError: the cache directory cannot be written.
-    """
-    config = DriveConfig(**{**DEMO_DEFAULTS, **options})
-    target = demo_dir(config, cache_dir)
-    bag = target / 'bag'
-    if (bag / 'metadata.yaml').is_file():
-        return bag
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f'.{target.name}.', dir=target.parent))
-    except OSError as err:
-        raise BagError(f'cannot create cache directory {target.parent}: {err}') from err
-    try:
-        write_drive(tmp, Drive(config))
-        try:
-            os.rename(tmp, target)
-        except OSError:
-            # Another run finished first: keep its entry.
-            if not (bag / 'metadata.yaml').is_file():
-                raise
-    except OSError as err:
-        raise BagError(f'cannot write demo bag into {target}: {err}') from err
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return bag

@@ -15,6 +15,7 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import ConfigError
 from solid_ros.sim.lidar import LidarModel, cast_scan, sensor_model
+from solid_ros.sim.odometry import OdometryDrift, drift_planar
 from solid_ros.sim.scene import LOOKALIKE_JITTER, SCENE_STYLES, Scene, StreetGrid, build_scene
 from solid_ros.sim.trajectory import (
     DEFAULT_ROUTE,
@@ -36,6 +37,12 @@ _KEY_DEFAULTS: dict[str, Any] = {'scene': 'varied', 'facade_detail': False}
 _SENSOR_KEY_DEFAULTS: dict[str, Any] = {'mount_roll_deg': 0.0, 'mount_pitch_deg': 0.0}
 # Already in the key as the sensor model's effective tilt.
 _KEY_OMITTED = ('mount_roll_deg', 'mount_pitch_deg')
+# The odometry's error model; the drives made before it had perfect odometry, which leaves the
+# whole model out of the key (a drifting odometry changes the bag's /odom: another entry).
+_ODOM_KEYS = ('perfect_odometry', 'odom_scale_error', 'odom_heading_bias_deg_per_m',
+              'odom_heading_walk_deg', 'odom_position_walk_m')
+_ODOM_RANGES = {'odom_scale_error': (-0.5, 0.5), 'odom_heading_bias_deg_per_m': (-10.0, 10.0),
+                'odom_heading_walk_deg': (0.0, 10.0), 'odom_position_walk_m': (0.0, 10.0)}
 
 
 @dataclass(frozen=True)
@@ -63,6 +70,13 @@ class DriveConfig:
         facade_detail: add entrances, bay fronts and stepped upper floors to the buildings.
         mount_roll_deg: sensor mounting roll, degrees; None keeps the sensor model's.
         mount_pitch_deg: sensor mounting pitch, degrees; None keeps the sensor model's.
+        perfect_odometry: the odometry (:attr:`SimScan.odom`, the bag's /odom) is the
+            reference pose; otherwise it drifts as set by the ``odom_*`` values (see
+            :mod:`solid_ros.sim.odometry`; the defaults drift by about 1-2 % of the path).
+        odom_scale_error: odometry step length error, fraction of the step.
+        odom_heading_bias_deg_per_m: odometry heading bias, degrees per metre driven.
+        odom_heading_walk_deg: odometry heading random walk, degrees per sqrt(metre).
+        odom_position_walk_m: odometry position random walk, metres per sqrt(metre) on x and y.
     """
 
     seed: int = 0
@@ -79,6 +93,12 @@ class DriveConfig:
     facade_detail: bool = False
     mount_roll_deg: float | None = None
     mount_pitch_deg: float | None = None
+    perfect_odometry: bool = False
+    # About 1.5 % of the path (see solid_ros.sim.odometry for the figures).
+    odom_scale_error: float = 0.01
+    odom_heading_bias_deg_per_m: float = 0.015
+    odom_heading_walk_deg: float = 0.05
+    odom_position_walk_m: float = 0.01
     _model: LidarModel = field(init=False, repr=False, compare=False)
     _crossings: Route = field(init=False, repr=False, compare=False)
     _grid_size: tuple[int, int] = field(init=False, repr=False, compare=False)
@@ -91,9 +111,15 @@ class DriveConfig:
         if self.scene not in SCENE_STYLES:
             raise ConfigError(f'scene: {self.scene!r} is not a scene style; use one of '
                               f'{", ".join(map(repr, SCENE_STYLES))}')
-        if not isinstance(self.facade_detail, bool):
-            raise ConfigError(f'facade_detail: expected true or false, got '
-                              f'{self.facade_detail!r}')
+        for key in ('facade_detail', 'perfect_odometry'):
+            if not isinstance(getattr(self, key), bool):
+                raise ConfigError(f'{key}: expected true or false, got {getattr(self, key)!r}')
+        for key, (low, high) in _ODOM_RANGES.items():
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                    low <= value <= high):
+                raise ConfigError(f'{key}: {value!r} is out of range; allowed [{low}, {high}]')
+            object.__setattr__(self, key, float(value))
         crossings = resolve_route(self.route)
         if not isinstance(self.route, str):
             object.__setattr__(self, 'route', crossings)  # lists -> tuples: hashable, frozen
@@ -127,6 +153,14 @@ class DriveConfig:
         return self._crossings
 
     @property
+    def drift(self) -> OdometryDrift | None:
+        """The odometry's error model (None: perfect odometry)."""
+        if self.perfect_odometry:
+            return None
+        return OdometryDrift(self.odom_scale_error, self.odom_heading_bias_deg_per_m,
+                             self.odom_heading_walk_deg, self.odom_position_walk_m)
+
+    @property
     def grid_size(self) -> tuple[int, int]:
         """Number of north-south and east-west roads (nx, ny)."""
         return self._grid_size
@@ -148,7 +182,7 @@ class DriveConfig:
         the default drive keeps its cache key.
         """
         key = self.to_dict()
-        for name in _KEY_OMITTED:
+        for name in _KEY_OMITTED + (_ODOM_KEYS if self.perfect_odometry else ()):
             del key[name]
         for name, default in _KEY_DEFAULTS.items():
             if key[name] == default:
@@ -173,6 +207,8 @@ class SimScan:
         stamp_ns: time stamp, nanoseconds.
         label: 'new', 'same', 'cross' or 'reverse' (see :mod:`solid_ros.sim.trajectory`).
         revisit_of: index of the earlier scan of the same place, -1 when new.
+        odom: (4, 4) float64 odometry <- sensor: the drifting odometry's pose (the reference
+            pose itself with ``perfect_odometry``); what a bag's /odom carries.
     """
 
     index: int
@@ -181,6 +217,7 @@ class SimScan:
     stamp_ns: int
     label: str
     revisit_of: int
+    odom: npt.NDArray[np.float64]
 
     @property
     def points(self) -> npt.NDArray[np.float32]:
@@ -242,21 +279,57 @@ class Drive:
         """Stamp of scan ``index``, nanoseconds."""
         return START_NS + int(round(self.trajectory.distance[index] / self.config.speed * 1e9))
 
-    def pose(self, index: int) -> npt.NDArray[np.float64]:
-        """Reference pose (world <- sensor) of scan ``index``; a tilted sensor's own frame:
-        ``Rz(yaw) Ry(pitch) Rx(roll)``, so ``p_world = pose @ p_sensor`` holds."""
-        t = self.trajectory
-        level = pose_matrix(float(t.xy[index, 0]), float(t.xy[index, 1]),
-                            self.model.mount_height, float(t.yaw[index]))
+    def _sensor_pose(self, x: float, y: float, yaw: float) -> npt.NDArray[np.float64]:
+        level = pose_matrix(x, y, self.model.mount_height, yaw)
         if not self.model.tilted:
             return level
         out: npt.NDArray[np.float64] = level @ self._mount
         return out
 
+    def pose(self, index: int) -> npt.NDArray[np.float64]:
+        """Reference pose (world <- sensor) of scan ``index``; a tilted sensor's own frame:
+        ``Rz(yaw) Ry(pitch) Rx(roll)``, so ``p_world = pose @ p_sensor`` holds."""
+        t = self.trajectory
+        return self._sensor_pose(float(t.xy[index, 0]), float(t.xy[index, 1]),
+                                 float(t.yaw[index]))
+
     def poses(self) -> npt.NDArray[np.float64]:
         """All reference poses, shape (N, 4, 4)."""
         return np.stack([self.pose(i) for i in range(len(self))]) if len(self) else np.zeros(
             (0, 4, 4))
+
+    def _planar_odometry(self, laps: int) -> tuple[npt.NDArray[np.float64],
+                                                   npt.NDArray[np.float64]]:
+        """Odometry positions and headings over ``laps`` laps of the route (the drift goes
+        on from lap to lap; every lap draws its own noise, so lap 0 never changes)."""
+        t = self.trajectory
+        xy, yaw = np.tile(t.xy, (laps, 1)), np.tile(t.yaw, laps)
+        drift = self.config.drift
+        if drift is None:
+            return xy, yaw
+        noise = np.concatenate([np.random.default_rng([self.config.seed, lap, 0x0D0])
+                                .standard_normal((len(t), 3)) for lap in range(laps)])
+        return drift_planar(xy, yaw, drift, noise)
+
+    @cached_property
+    def _odometry_lap(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        return self._planar_odometry(1)
+
+    def odometry(self, index: int) -> npt.NDArray[np.float64]:
+        """Odometry pose (odometry <- sensor) of scan ``index``: the reference pose with the
+        configured drift, exactly the reference pose with ``perfect_odometry``."""
+        if self.config.drift is None:
+            return self.pose(index)
+        xy, yaw = self._odometry_lap
+        return self._sensor_pose(float(xy[index, 0]), float(xy[index, 1]), float(yaw[index]))
+
+    def odometry_poses(self, laps: int = 1) -> npt.NDArray[np.float64]:
+        """Odometry poses of ``laps`` laps of the route, shape (laps * N, 4, 4)."""
+        if self.config.drift is None:
+            return np.tile(self.poses(), (laps, 1, 1))
+        xy, yaw = self._planar_odometry(laps)
+        out = [self._sensor_pose(float(x), float(y), float(a)) for (x, y), a in zip(xy, yaw)]
+        return np.stack(out) if out else np.zeros((0, 4, 4))
 
     def scan(self, index: int) -> SimScan:
         """Simulate scan ``index`` (noise seeded by the drive seed and the index)."""
@@ -268,7 +341,7 @@ class Drive:
                           float(t.yaw[index]), rng)
         return SimScan(index=index, cloud=cloud, pose=self.pose(index),
                        stamp_ns=self.stamp_ns(index), label=str(t.label[index]),
-                       revisit_of=int(t.revisit_of[index]))
+                       revisit_of=int(t.revisit_of[index]), odom=self.odometry(index))
 
     def __iter__(self) -> Iterator[SimScan]:
         for i in range(len(self)):
@@ -285,7 +358,7 @@ def simulate(seed: int = 0, sensor: str | LidarModel = 'hdl64', num_scans: int |
         num_scans: stop after this many scans (None: the whole route). Beyond the route's
             length the drive repeats from the start (places revisited again), with new noise.
         **options: further :class:`DriveConfig` fields (block, spacing, speed, route, nx, ny,
-            scene, facade_detail, mount_roll_deg, mount_pitch_deg, ...).
+            scene, facade_detail, mount_roll_deg, mount_pitch_deg, perfect_odometry, odom_*).
 
     Yields:
         :class:`SimScan` in driving order.
@@ -296,14 +369,18 @@ def simulate(seed: int = 0, sensor: str | LidarModel = 'hdl64', num_scans: int |
     if total < 0:
         raise ConfigError(f'num_scans: expected >= 0, got {total}')
     period = int(round(drive.trajectory.distance[-1] / drive.config.speed * 1e9)) + 10**9
+    odom: npt.NDArray[np.float64] | None = None
     for k in range(total):
         lap, i = divmod(k, n)
         if lap == 0:
             yield drive.scan(i)
             continue
+        if odom is None:
+            odom = drive.odometry_poses(-(-total // n))
         rng = np.random.default_rng([seed, i, lap, 0x1D4])
         t = drive.trajectory
         cloud = cast_scan(drive.scene, drive.model, float(t.xy[i, 0]), float(t.xy[i, 1]),
                           float(t.yaw[i]), rng)
         yield SimScan(index=k, cloud=cloud, pose=drive.pose(i),
-                      stamp_ns=drive.stamp_ns(i) + lap * period, label='same', revisit_of=i)
+                      stamp_ns=drive.stamp_ns(i) + lap * period, label='same', revisit_of=i,
+                      odom=odom[k])

@@ -1,9 +1,11 @@
 """The README's main command: simulate a drive with revisits, replay it, score it, plot it.
 
 ``solid_demo`` (or ``python -m solid_ros.tools.demo``) with no bag makes the built-in drive once
-(cached under ``~/.cache/solid_ros/demo``), replays it through the node's detector with the
-shipped YAML, prints the summary and a per-revisit-kind table, and writes plots. With a bag it
-is ``solid_replay`` on that bag.
+(cached under ``~/.cache/solid_ros/demo``, :mod:`solid_ros.tools.demo_cache`), replays it
+through the node's detector with the shipped YAML (the drive's drifting odometry, the bag's
+/odom, fed as the node's odom; scores against the reference poses, poses.txt), prints the
+summary and a per-revisit-kind table, and writes plots. With a bag it is ``solid_replay`` on
+that bag.
 """
 
 from __future__ import annotations
@@ -172,7 +174,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(args_in)
     tune_allocator()
     try:
-        from solid_ros.sim.bagwriter import ensure_demo_bag
+        from solid_ros.tools.demo_cache import ensure_demo_bag
 
         if not args.quiet:
             print(f'{PROG}: preparing the simulated drive ({args.sensor}, seed {args.seed})...',

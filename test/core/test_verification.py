@@ -303,7 +303,8 @@ def test_lookalike_street_through_a_90_degree_clip_is_refused(q: int, m: int) ->
 def _published(sensor: str, preset: str, route: str, scene: str,
                scans: list[int]) -> list[tuple[int, int, float, float]]:
     """(query scan, match scan, translation error, rotation error) of every published loop,
-    the geometric tests alone (the simulated odometry is perfect: its check is off)."""
+    the geometric tests alone (the reference poses are fed as odometry, a perfect one: its
+    check is off)."""
     drive = _demo_drive(sensor, route, scene)
     det = LoopDetector(SolidConfig.from_yaml(CONFIG_DIR / preset).replace(odom_check_drift=0.0))
     out = []

@@ -1,41 +1,41 @@
-"""Drive options: DriveConfig, simulate and ensure_demo_bag pass them through; defaults keep
-the drive and its cache key as they were."""
+"""Drive options: DriveConfig and simulate pass them through; defaults keep the drive as it
+was, and earlier drives keep their cache key."""
 
 from __future__ import annotations
-
-import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from solid_ros import __version__
 from solid_ros.core.errors import ConfigError
 from solid_ros.sim import (
     DEMO_DEFAULTS,
     DEMO_SENSORS,
     Drive,
     DriveConfig,
-    demo_dir,
-    ensure_demo_bag,
-    read_kitti_poses,
     simulate,
     vlp16_like,
 )
 from solid_ros.sim.scene import LOOKALIKE_JITTER
 
 
-def test_default_drive_keeps_its_cache_key() -> None:
-    # The keys of the cached demo bags made before the new options existed.
-    hdl = DriveConfig(**DEMO_DEFAULTS)
+def test_drives_of_earlier_versions_keep_their_cache_key() -> None:
+    # The keys of the cached demo bags made before the new options existed: those drives had
+    # perfect odometry, which leaves the odometry's error model out of the key.
+    hdl = DriveConfig(**DEMO_DEFAULTS, perfect_odometry=True)
     assert hdl.fingerprint() == '194e4ed936b62d53'
-    assert demo_dir(hdl, '/c').name == f'hdl64-194e4ed936b62d53-{__version__}'
-    avia = DriveConfig(**{**DEMO_DEFAULTS, 'sensor': DEMO_SENSORS['avia_like']})
+    avia = DriveConfig(**{**DEMO_DEFAULTS, 'sensor': DEMO_SENSORS['avia_like']},
+                       perfect_odometry=True)
     assert avia.fingerprint() == 'f1146a71d351df42'
     # The defaults spelt out are the same drive.
     spelt = DriveConfig(**DEMO_DEFAULTS, route='revisits', nx=4, ny=3, scene='varied',
-                        facade_detail=False, mount_roll_deg=0.0, mount_pitch_deg=0.0)
+                        facade_detail=False, mount_roll_deg=0.0, mount_pitch_deg=0.0,
+                        perfect_odometry=True, odom_scale_error=0.5)
     assert spelt.fingerprint() == hdl.fingerprint()
+    # A drifting odometry writes another /odom: another cache entry, one per error model.
+    drifting = DriveConfig(**DEMO_DEFAULTS)
+    assert drifting.fingerprint() != hdl.fingerprint()
+    assert DriveConfig(**DEMO_DEFAULTS, odom_heading_walk_deg=0.0).fingerprint() != (
+        drifting.fingerprint())
 
 
 def test_default_drive_is_unchanged() -> None:
@@ -55,7 +55,8 @@ def test_default_drive_is_unchanged() -> None:
 @pytest.mark.parametrize('option', [
     {'route': 'no_revisit'}, {'route': ((0, 0), (2, 0))}, {'nx': 5}, {'scene': 'lookalike'},
     {'facade_detail': True}, {'mount_pitch_deg': 3.0}, {'sensor': 'ouster_like'},
-    {'sensor': 'vlp16_like'}])
+    {'sensor': 'vlp16_like'}, {'perfect_odometry': True}, {'odom_scale_error': 0.02},
+    {'odom_heading_bias_deg_per_m': 0.0}, {'odom_position_walk_m': 0.0}])
 def test_every_option_names_another_drive(option: dict[str, object]) -> None:
     assert DriveConfig(**{**DEMO_DEFAULTS, **option}).fingerprint() != DriveConfig(
         **DEMO_DEFAULTS).fingerprint()
@@ -94,26 +95,3 @@ def test_options_reach_the_scans() -> None:
     tilted = vlp16_like(mount_roll_deg=4.0)
     assert DriveConfig(sensor=tilted).model.mount_roll_deg == 4.0
     assert DriveConfig(sensor=tilted, mount_roll_deg=0.0).model.tilted is False
-
-
-def test_demo_bag_records_the_options(tmp_path: Path) -> None:
-    options = {'sensor': vlp16_like(points_per_ring=180), 'block': 40.0, 'spacing': 10.0,
-               'route': ((0, 0), (2, 0), (2, 1)), 'scene': 'lookalike', 'facade_detail': True,
-               'mount_roll_deg': 2.0}
-    bag = ensure_demo_bag(cache_dir=tmp_path, **options)
-    entry = bag.parent
-    assert entry == demo_dir(DriveConfig(**{**DEMO_DEFAULTS, **options}), tmp_path)
-    meta = json.loads((entry / 'drive.json').read_text())
-    drive = meta['drive']
-    assert drive['route'] == [[0, 0], [2, 0], [2, 1]] and meta['route_crossings'] == [
-        [0, 0], [2, 0], [2, 1]]
-    assert (drive['nx'], drive['ny'], drive['scene'], drive['facade_detail']) == (
-        3, 2, 'lookalike', True)
-    assert drive['sensor']['name'] == 'vlp16_like' and drive['sensor']['mount_roll_deg'] == 2.0
-    labels = (entry / 'labels.txt').read_text().split()[1::3]
-    assert meta['labels'] == {'new': meta['num_scans']} and labels == ['new'] * meta[
-        'num_scans']
-    poses = read_kitti_poses(entry / 'poses.txt')
-    reference = Drive(DriveConfig(**{**DEMO_DEFAULTS, **options})).poses()
-    np.testing.assert_allclose(poses, reference, atol=1e-8)
-    assert poses[0, 2, 1] == pytest.approx(np.sin(np.radians(2.0)))  # the roll is recorded

@@ -1,4 +1,4 @@
-"""Simulator: determinism, geometry against the scene, labels, bag round trip, demo cache."""
+"""Simulator: determinism, geometry against the scene, labels, bag round trip."""
 
 from __future__ import annotations
 
@@ -21,10 +21,7 @@ from solid_ros.sim import (
     avia_like,
     build_scene,
     build_trajectory,
-    cache_root,
     cast_scan,
-    demo_dir,
-    ensure_demo_bag,
     hdl64,
     read_kitti_poses,
     sensor_model,
@@ -206,10 +203,12 @@ def test_bag_round_trip(tmp_path: Path) -> None:
         assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'intensity']
         np.testing.assert_array_equal(np.asarray(cloud_to_xyz(msg)), scan.points)
         assert odom.header.frame_id == 'map' and odom.child_frame_id == 'lidar'
+        # /odom carries the drifting odometry, poses.txt the reference.
         p, q = odom.pose.pose.position, odom.pose.pose.orientation
-        np.testing.assert_allclose([p.x, p.y, p.z], scan.pose[:3, 3])
+        np.testing.assert_allclose([p.x, p.y, p.z], scan.odom[:3, 3])
         yaw = 2.0 * np.arctan2(q.z, q.w)
-        assert np.cos(yaw - np.arctan2(scan.pose[1, 0], scan.pose[0, 0])) > 1 - 1e-12
+        assert np.cos(yaw - np.arctan2(scan.odom[1, 0], scan.odom[0, 0])) > 1 - 1e-12
+    assert np.linalg.norm(scans[-1].odom[:3, 3] - scans[-1].pose[:3, 3]) > 0.05
     poses = read_kitti_poses(tmp_path / 'poses.txt')
     np.testing.assert_allclose(poses, np.stack([s.pose for s in scans]), atol=1e-8)
     times = np.loadtxt(tmp_path / 'times.txt')
@@ -225,30 +224,6 @@ def test_read_kitti_poses_rejects_bad_files(tmp_path: Path) -> None:
         read_kitti_poses(bad)
     with pytest.raises(BagError):
         read_kitti_poses(tmp_path / 'missing.txt')
-
-
-def test_demo_cache_is_written_once(tmp_path: Path) -> None:
-    bag = ensure_demo_bag(cache_dir=tmp_path, **SMALL)
-    assert (bag / 'metadata.yaml').is_file()
-    entry = bag.parent
-    assert entry == demo_dir(DriveConfig(**{'seed': 0, **SMALL}), tmp_path)
-    for name in ('poses.txt', 'times.txt', 'labels.txt', 'drive.json'):
-        assert (entry / name).is_file()
-    stamp = (bag / 'metadata.yaml').stat().st_mtime_ns
-    assert ensure_demo_bag(cache_dir=tmp_path, **SMALL) == bag
-    assert (bag / 'metadata.yaml').stat().st_mtime_ns == stamp
-    assert [p.name for p in tmp_path.iterdir()] == [entry.name]  # no temporary left over
-    other = ensure_demo_bag(cache_dir=tmp_path, seed=1, **SMALL)
-    assert other != bag
-    n = len(np.loadtxt(entry / 'times.txt'))
-    assert n == len(Drive(DriveConfig(**SMALL))) == len(read_kitti_poses(entry / 'poses.txt'))
-
-
-def test_cache_root_respects_xdg(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path))
-    assert cache_root() == tmp_path / 'solid_ros' / 'demo'
-    monkeypatch.delenv('XDG_CACHE_HOME')
-    assert cache_root() == Path.home() / '.cache' / 'solid_ros' / 'demo'
 
 
 # --- Loop closure on the simulated drive (the demo's claim, at test size) -------------------
@@ -268,7 +243,8 @@ def _recall(drive: Drive, scans: list[SimScan], fov: float,
     """Recall@1 and yaw errors (degrees, correct matches) per label, threshold off."""
     t = drive.trajectory
     exclude = int(drive.config.exclude_distance / drive.config.spacing)
-    # The odometry check off: the poses are perfect and would hide the descriptor's misses.
+    # The reference poses as odometry (scan.pose, not the drifting scan.odom) and the
+    # odometry check off: perfect poses would hide the descriptor's misses.
     det = LoopDetector(SolidConfig(fov_width_deg=fov, distance_threshold=2.0, verify=False,
                                    exclude_recent_frames=exclude, odom_check_drift=0.0,
                                    heading_weight=heading_weight))
