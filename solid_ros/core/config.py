@@ -396,6 +396,10 @@ class NodeConfig(_Schema):
                                  'candidate is dropped', low=0.01, high=60.0)
     peer_catchup: int = _p(2000, 'Most stored descriptors sent to a robot that joins late '
                            '(and asked for at start)', low=0, high=1_000_000, read_only=True)
+    map_voxel_size: float = _p(0.5, 'Voxel of the map of keyframe clouds at their corrected poses '
+                               '(~/map, saved maps), metres', low=0.01, high=100.0)
+    map_max_points: int = _p(1_000_000, 'Most points of the map; beyond it the voxel grows by '
+                             'half until it fits', low=1, high=100_000_000)
 
 
 def param_specs() -> tuple[ParamSpec, ...]:
