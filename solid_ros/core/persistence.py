@@ -40,7 +40,7 @@ import stat
 import tempfile
 import zipfile
 import zlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -57,7 +57,7 @@ from solid_ros.core.registration import KeyframeCloud
 
 __all__ = ['FORMAT', 'VERSION', 'NpyHeader', 'PriorMap', 'check_save_target', 'is_database',
            'load_database', 'read_database', 'read_map_poses', 'read_npz_headers',
-           'remove_stale_temporaries', 'save_database']
+           'remove_stale_temporaries', 'save_database', 'write_atomic']
 
 FORMAT = 'solid_ros.database'
 VERSION = 3
@@ -103,7 +103,8 @@ def save_database(db: DescriptorDatabase, path: str | Path,
             'shape_params': db.config.shape_params(), 'fingerprint': db.config.fingerprint(),
             'sessions': sorted({int(s) for s in arrays['sessions']})}
     arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
-    _write_atomic(target, lambda f: np.savez(f, **arrays))
+    write_atomic(target, lambda f: np.savez(f, **arrays), check=check_save_target,
+                 what='database', error=DatabaseError)
     return target
 
 
@@ -141,36 +142,48 @@ def _export_map_poses(arrays: dict[str, Any],
     return out
 
 
-def _write_atomic(target: Path, write: Any) -> None:
-    """Write through ``write(file)`` to a locked temporary file, then rename it over ``target``.
+def write_atomic(target: str | Path, write: Callable[[IO[bytes]], object], *,
+                 check: Callable[[Path], None] | None = None, what: str = 'file',
+                 error: type[SolidError] = SolidError) -> Path:
+    """Write through ``write(file)`` to a locked temporary file beside ``target``, then rename
+    it over ``target``: a crash leaves the old file or the new one, never a torn one.
 
     The lock tells :func:`remove_stale_temporaries` that the file is in use; it is held until
     the rename is done.
 
+    Args:
+        target: the file to write.
+        write: writes the content into the open temporary file.
+        check: called with ``target`` just before the rename (may raise to keep the old file).
+        what: the kind of file, for the error message.
+        error: the error class raised.
+
     Raises:
-        DatabaseError: the file cannot be written, or ``target`` changed into something that
-            must not be replaced meanwhile.
+        SolidError: (``error``) the file cannot be written.
     """
+    path = Path(target)
     tmp_name = ''
     try:
-        directory = target.parent.resolve()  # not target.resolve(): never follow a link
-        fd, tmp_name = tempfile.mkstemp(prefix=f'.{target.name}.', suffix='.tmp',
+        directory = path.parent.resolve()  # not path.resolve(): never follow a link
+        fd, tmp_name = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp',
                                         dir=directory)
         with os.fdopen(fd, 'wb') as f:
             fcntl.flock(f.fileno(), fcntl.LOCK_EX)
             write(f)
             f.flush()
             os.fsync(f.fileno())
-            check_save_target(target)  # again, just before replacing it
-            os.replace(tmp_name, target)
+            if check is not None:
+                check(path)  # again, just before replacing it
+            os.replace(tmp_name, path)
             tmp_name = ''
         _fsync_dir(directory)
     except OSError as err:
-        raise DatabaseError(f'cannot write database {target}: {err.strerror or err}') from err
+        raise error(f'cannot write {what} {path}: {err.strerror or err}') from err
     finally:
         if tmp_name:
             with contextlib.suppress(OSError):
                 os.unlink(tmp_name)
+    return path
 
 
 def check_save_target(path: str | Path) -> None:

@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
+from solid_ros.core.persistence import write_atomic
 
-__all__ = ['read_kitti_bin', 'read_pcd', 'read_points', 'write_atomic', 'write_pcd']
+__all__ = ['read_kitti_bin', 'read_pcd', 'read_points', 'write_pcd']
 
 _PCD_TYPES = {('F', 4): '<f4', ('F', 8): '<f8', ('I', 1): '<i1', ('I', 2): '<i2',
               ('I', 4): '<i4', ('I', 8): '<i8', ('U', 1): '<u1', ('U', 2): '<u2',
@@ -73,32 +71,6 @@ def read_points(path: str | Path) -> npt.NDArray[np.float32]:
     return read_kitti_bin(path)
 
 
-def write_atomic(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to a temporary file beside ``path``, then rename it over ``path``: a
-    crash leaves the old file or the new one.
-
-    Raises:
-        SolidError: the file cannot be written (named with the reason).
-    """
-    target = Path(path)
-    tmp = ''
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f'.{target.name}.', suffix='.tmp', dir=target.parent)
-        with os.fdopen(fd, 'wb') as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-        tmp = ''
-    except OSError as err:
-        raise SolidError(f'cannot write {target}: {err.strerror or err}') from err
-    finally:
-        if tmp:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-    return target
-
-
 def write_pcd(path: str | Path, points: npt.ArrayLike) -> Path:
     """Write (N, 3+) points as a binary PCD file of float32 x, y, z (atomically).
 
@@ -113,4 +85,5 @@ def write_pcd(path: str | Path, points: npt.ArrayLike) -> Path:
     header = ('# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n'
               f'SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n'
               f'VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n')
-    return write_atomic(path, header.encode('ascii') + xyz.tobytes())
+    data = header.encode('ascii') + xyz.tobytes()
+    return write_atomic(path, lambda f: f.write(data))

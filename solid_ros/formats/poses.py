@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import PoseError
 from solid_ros.core.geometry import matrix_to_vector, vector_to_matrix
-from solid_ros.formats.pointfiles import write_atomic
+from solid_ros.core.persistence import write_atomic
 
 __all__ = [
     'PoseError', 'PoseTrack', 'format_stamp_ns', 'load_reference', 'odometry_to_pose',
@@ -111,7 +111,8 @@ def write_tum_poses(path: str | Path, stamps_ns: npt.ArrayLike, poses: npt.Array
         raise PoseError(f'{path}: {len(arr)} poses but {len(stamps)} stamps')
     lines = [format_stamp_ns(int(s)) + ' ' + ' '.join(f'{v:.10g}' for v in matrix_to_vector(T))
              for s, T in zip(stamps, arr)]
-    return write_atomic(path, ''.join(line + '\n' for line in lines).encode())
+    text = ''.join(line + '\n' for line in lines).encode()
+    return write_atomic(path, lambda f: f.write(text))
 
 
 def write_kitti_poses(path: str | Path, poses: npt.ArrayLike) -> Path:
@@ -124,7 +125,8 @@ def write_kitti_poses(path: str | Path, poses: npt.ArrayLike) -> Path:
     """
     arr = _checked_poses(poses, path)
     lines = [' '.join(f'{v:.10g}' for v in T[:3, :4].ravel()) for T in arr]
-    return write_atomic(path, ''.join(line + '\n' for line in lines).encode())
+    text = ''.join(line + '\n' for line in lines).encode()
+    return write_atomic(path, lambda f: f.write(text))
 
 
 def _rows(path: str | Path, what: str) -> list[list[str]]:
