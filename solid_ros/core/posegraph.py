@@ -107,7 +107,9 @@ class PoseGraph:
         self.config = config
         self._prior = {(int(s), int(i)): vector_to_matrix(pose_to_vector(p))
                        for (s, i), p in (prior_map or {}).items()}
-        self.counts: Counter[str] = Counter()  # loop outcomes so far
+        # Loop outcomes so far (LoopOutcome reasons), and 'confirmed' / 'unconfirmed' for
+        # pending loops taken or dropped later.
+        self.counts: Counter[str] = Counter()
         self.reset()
 
     def reset(self) -> None:
@@ -146,6 +148,13 @@ class PoseGraph:
             result: what the detector returned for the scan (gated-out scans change nothing).
             odom: the keyframe's odometry sample (pose and covariance); without it the pose
                 the detector got (``result.pose``) is used with the noise model.
+
+        Bad input (no pose, a repeated index, an unusable covariance) and gtsam failures
+        come back as events; call from one thread.
+
+        Raises:
+            BackendError: gtsam failed and not even the graph before this keyframe's new
+                factors could be solved again (never seen in the tests and benches).
         """
         t0 = time.perf_counter()
         events: list[BackendEvent] = []
