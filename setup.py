@@ -18,7 +18,7 @@ setup(
     ],
     python_requires='>=3.10',
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'mcap', 'matplotlib',
-                      'small-gicp'],
+                      'small-gicp', 'gtsam>=4.3'],
     extras_require={
         'test': ['pytest', 'ruff', 'mypy', 'types-PyYAML'],
         # ROS 2 Jazzy client libraries from PyPI, for machines without a ROS install.

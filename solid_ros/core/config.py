@@ -301,6 +301,53 @@ class SolidConfig(_Schema):
     cloud_memory_mb: float = _p(1024.0, 'Memory limit of the keyframe clouds, MB; the oldest is '
                                 'dropped beyond it', low=0.0, high=1e6, read_only=True)
 
+    # Back end: a pose graph on gtsam iSAM2 (solid_ros.core.posegraph); not shape settings.
+    backend: bool = _p(False, 'Close the loop in a pose graph (gtsam iSAM2): corrected keyframe '
+                       'poses, map->odom, relocalisation in a loaded map (needs pip install '
+                       'gtsam)', read_only=True)
+    backend_odom_trans_sigma: float = _p(0.05, 'Odometry model (used when the odometry gives no '
+                                         'usable covariance): translation sigma after 1 m '
+                                         'driven, metres; variance grows with the distance',
+                                         low=0.0, high=10.0, read_only=True)
+    backend_odom_rot_sigma_deg: float = _p(0.1, 'Odometry model: rotation sigma after 1 m '
+                                           'driven, degrees; variance grows with the distance',
+                                           low=0.0, high=90.0, read_only=True)
+    backend_odom_rot_per_rad: float = _p(0.05, 'Odometry model: rotation sigma after 1 rad '
+                                         'turned, radians; variance grows with the angle',
+                                         low=0.0, high=10.0, read_only=True)
+    backend_odom_floor_m: float = _p(0.01, 'Least translation sigma of an odometry step, metres '
+                                     '(added in quadrature)', low=1e-4, high=100.0,
+                                     read_only=True)
+    backend_odom_floor_deg: float = _p(0.05, 'Least rotation sigma of an odometry step, degrees '
+                                       '(added in quadrature)', low=1e-4, high=90.0,
+                                       read_only=True)
+    backend_loop_floor_m: float = _p(0.02, 'Least translation sigma of a loop, metres (added in '
+                                     'quadrature: registration covariances are optimistic)',
+                                     low=1e-4, high=100.0, read_only=True)
+    backend_loop_floor_deg: float = _p(0.1, 'Least rotation sigma of a loop, degrees (added in '
+                                       'quadrature)', low=1e-4, high=90.0, read_only=True)
+    backend_loop_kernel: str = _p('huber', "Robust kernel of the loop factors: 'huber' keeps "
+                                  "far-off true loops (drifted odometry) pulling; 'cauchy' "
+                                  "discounts them; 'none' is least squares",
+                                  choices=('huber', 'cauchy', 'none'), read_only=True)
+    backend_loop_kernel_width: float = _p(1.345, 'Width of the loop kernel, in sigmas of the '
+                                          "loop's covariance", low=0.01, high=1000.0,
+                                          read_only=True)
+    backend_loop_gate: float = _p(3.0, 'A loop farther than this many sigmas from the current '
+                                  'estimate (Mahalanobis distance with the loop covariance and '
+                                  'the relative marginal covariance of its keyframes) waits for '
+                                  'loops of other keyframes that agree with it (0 = take every '
+                                  'loop)',
+                                  low=0.0, high=1e6)
+    backend_loop_refuse: float = _p(12.0, 'A loop farther than this many sigmas from the current '
+                                    'estimate is refused (0 = never refuse)', low=0.0,
+                                    high=1e6)
+    backend_segment_jump_m: float = _p(10.0, 'An odometry step longer than this between two '
+                                       'keyframes (a jump or reset) starts a new graph segment, '
+                                       'metres', low=0.01, high=1e6)
+    backend_extra_iterations: int = _p(2, 'Extra iSAM2 iterations after a keyframe with loops',
+                                       low=0, high=100)
+
     def _validate_cross(self) -> None:
         if self.fov_up_deg <= self.fov_down_deg:
             raise ConfigError(f'fov_up_deg: {self.fov_up_deg} must be greater than '
@@ -349,6 +396,10 @@ class NodeConfig(_Schema):
                                  'candidate is dropped', low=0.01, high=60.0)
     peer_catchup: int = _p(2000, 'Most stored descriptors sent to a robot that joins late '
                            '(and asked for at start)', low=0, high=1_000_000, read_only=True)
+    map_voxel_size: float = _p(0.5, 'Voxel of the map of keyframe clouds at their corrected poses '
+                               '(~/map, saved maps), metres', low=0.01, high=100.0)
+    map_max_points: int = _p(1_000_000, 'Most points of the map; beyond it the voxel grows by '
+                             'half until it fits', low=1, high=100_000_000)
 
     # Odometry source; KISS-ICP's settings (solid_ros.core.kiss_odometry).
     odometry_source: str = _p('topic', "Pose of each cloud: 'topic' (the odom subscription, a "

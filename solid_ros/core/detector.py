@@ -46,7 +46,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -682,12 +682,14 @@ class LoopDetector:
         self._last_loop_query = None
         self._path.clear()
 
-    def save(self, path: str | Path) -> Path:
-        """Save the database (all sessions) and its keyframe clouds atomically; see
+    def save(self, path: str | Path,
+             map_poses: Mapping[tuple[int, int], Any] | None = None) -> Path:
+        """Save the database (all sessions) and its keyframe clouds atomically, with the
+        back end's map-frame poses by ``(session, index)`` when given; see
         :mod:`solid_ros.core.persistence`."""
         from solid_ros.core.persistence import save_database
 
-        return save_database(self.database, path, self.clouds)
+        return save_database(self.database, path, self.clouds, map_poses)
 
     @classmethod
     def load(cls, path: str | Path, config: SolidConfig | None = None) -> LoopDetector:

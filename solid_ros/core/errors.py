@@ -25,3 +25,7 @@ class BagError(SolidError):
 
 class PoseError(SolidError, ValueError):
     """A pose or times file cannot be read, or poses and stamps do not fit together."""
+
+
+class BackendError(SolidError):
+    """The pose graph back end cannot run (gtsam missing) or was given unusable input."""

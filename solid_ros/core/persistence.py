@@ -40,6 +40,7 @@ import stat
 import tempfile
 import zipfile
 import zlib
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -49,16 +50,17 @@ import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import POSE_FIELDS, DescriptorDatabase
-from solid_ros.core.errors import DatabaseError
+from solid_ros.core.errors import DatabaseError, SolidError
+from solid_ros.core.geometry import pose_to_vector, vector_to_matrix
 from solid_ros.core.keyframes import CloudStore, KeyframeCloud
 
-__all__ = ['FORMAT', 'VERSION', 'NpyHeader', 'check_save_target', 'is_database',
-           'load_database', 'read_database', 'read_npz_headers', 'remove_stale_temporaries',
-           'save_database']
+__all__ = ['FORMAT', 'VERSION', 'NpyHeader', 'PriorMap', 'check_save_target', 'is_database',
+           'load_database', 'read_database', 'read_map_poses', 'read_npz_headers',
+           'remove_stale_temporaries', 'save_database', 'write_atomic']
 
 FORMAT = 'solid_ros.database'
-VERSION = 2
-_READABLE = (1, 2)
+VERSION = 3
+_READABLE = (1, 2, 3)
 
 _READ_ERRORS = (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile,
                 zlib.error, UnicodeDecodeError, RecursionError, OverflowError, MemoryError,
@@ -71,13 +73,16 @@ _ZIP_MAGICS = (b'PK\x03\x04', b'PK\x05\x06')
 
 
 def save_database(db: DescriptorDatabase, path: str | Path,
-                  clouds: CloudStore | None = None) -> Path:
+                  clouds: CloudStore | None = None,
+                  map_poses: Mapping[tuple[int, int], Any] | None = None) -> Path:
     """Write every stored scan of ``db`` (all sessions) to ``path`` atomically.
 
     Args:
         db: the database.
         path: target file; written exactly as named (no ``.npz`` is appended).
         clouds: keyframe clouds of ``db``'s scans, saved with them (None: no clouds).
+        map_poses: map-frame pose of scans by ``(session, index)`` (4x4 or ``x y z qx qy qz
+            qw``), e.g. the back end's corrected poses; scans without one get a NaN row.
 
     Returns:
         The path written.
@@ -90,13 +95,15 @@ def save_database(db: DescriptorDatabase, path: str | Path,
     remove_stale_temporaries(target)
     arrays: dict[str, Any] = db.export_arrays()
     arrays.update(_export_clouds(db, clouds))
+    arrays['map_poses'] = _export_map_poses(arrays, map_poses or {})
     meta = {'format': FORMAT, 'version': VERSION, 'count': int(len(arrays['indices'])),
             'num_range': db.num_range, 'num_angle': db.num_angle,
             'cloud_points': int(len(arrays['cloud_points'])),
             'shape_params': db.config.shape_params(), 'fingerprint': db.config.fingerprint(),
             'sessions': sorted({int(s) for s in arrays['sessions']})}
     arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
-    _write_atomic(target, lambda f: np.savez(f, **arrays))
+    write_atomic(target, lambda f: np.savez(f, **arrays), check=check_save_target,
+                 what='database', error=DatabaseError)
     return target
 
 
@@ -119,36 +126,63 @@ def _export_clouds(db: DescriptorDatabase,
     return {'cloud_points': points, 'cloud_offsets': offsets, 'cloud_struct': struct}
 
 
-def _write_atomic(target: Path, write: Any) -> None:
-    """Write through ``write(file)`` to a locked temporary file, then rename it over ``target``.
+def _export_map_poses(arrays: dict[str, Any],
+                      map_poses: Mapping[tuple[int, int], Any]) -> npt.NDArray[np.float64]:
+    """(n, 7) map poses in the order of the exported rows (NaN rows: none)."""
+    out = np.full((len(arrays['indices']), len(POSE_FIELDS)), np.nan)
+    for row, key in enumerate(zip(arrays['sessions'].tolist(), arrays['indices'].tolist())):
+        pose = map_poses.get(key)
+        if pose is not None:
+            try:
+                out[row] = pose_to_vector(pose)
+            except SolidError as err:
+                raise DatabaseError(f'map pose of session {key[0]} keyframe {key[1]}: '
+                                    f'{err}') from err
+    return out
+
+
+def write_atomic(target: str | Path, write: Callable[[IO[bytes]], object], *,
+                 check: Callable[[Path], None] | None = None, what: str = 'file',
+                 error: type[SolidError] = SolidError) -> Path:
+    """Write through ``write(file)`` to a locked temporary file beside ``target``, then rename
+    it over ``target``: a crash leaves the old file or the new one, never a torn one.
 
     The lock tells :func:`remove_stale_temporaries` that the file is in use; it is held until
     the rename is done.
 
+    Args:
+        target: the file to write.
+        write: writes the content into the open temporary file.
+        check: called with ``target`` just before the rename (may raise to keep the old file).
+        what: the kind of file, for the error message.
+        error: the error class raised.
+
     Raises:
-        DatabaseError: the file cannot be written, or ``target`` changed into something that
-            must not be replaced meanwhile.
+        SolidError: (``error``) the file cannot be written.
     """
+    path = Path(target)
     tmp_name = ''
     try:
-        directory = target.parent.resolve()  # not target.resolve(): never follow a link
-        fd, tmp_name = tempfile.mkstemp(prefix=f'.{target.name}.', suffix='.tmp',
+        directory = path.parent.resolve()  # not path.resolve(): never follow a link
+        fd, tmp_name = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp',
                                         dir=directory)
         with os.fdopen(fd, 'wb') as f:
             fcntl.flock(f.fileno(), fcntl.LOCK_EX)
             write(f)
             f.flush()
             os.fsync(f.fileno())
-            check_save_target(target)  # again, just before replacing it
-            os.replace(tmp_name, target)
+            if check is not None:
+                check(path)  # again, just before replacing it
+            os.replace(tmp_name, path)
             tmp_name = ''
         _fsync_dir(directory)
     except OSError as err:
-        raise DatabaseError(f'cannot write database {target}: {err.strerror or err}') from err
+        raise error(f'cannot write {what} {path}: {err.strerror or err}') from err
     finally:
         if tmp_name:
             with contextlib.suppress(OSError):
                 os.unlink(tmp_name)
+    return path
 
 
 def check_save_target(path: str | Path) -> None:
@@ -435,7 +469,8 @@ def _short(text: str, limit: int = 120) -> str:
 def _expected(meta: dict[str, Any], p: Path) -> dict[str, tuple[np.dtype[Any],
                                                                 tuple[int | None, ...]]]:
     sizes = {}
-    keys = ('count', 'num_range', 'num_angle') + (('cloud_points',) if meta.get('version') == 2
+    version = meta.get('version')
+    keys = ('count', 'num_range', 'num_angle') + (('cloud_points',) if version in (2, 3)
                                                  else ())
     for key in keys:
         value = meta.get(key)
@@ -455,6 +490,8 @@ def _expected(meta: dict[str, Any], p: Path) -> dict[str, tuple[np.dtype[Any],
         out['cloud_points'] = (np.dtype(np.float32), (sizes['cloud_points'], 3))
         out['cloud_offsets'] = (np.dtype(np.int64), (n + 1,))
         out['cloud_struct'] = (np.dtype(np.int32), (n,))
+    if version == 3:
+        out['map_poses'] = (np.dtype(np.float64), (n, len(POSE_FIELDS)))
     return out
 
 
@@ -467,6 +504,14 @@ def _check_arrays(p: Path, meta: dict[str, Any], arrays: dict[str, npt.NDArray[A
     for key in ('r_solid', 'a_solid', 'cloud_points'):
         if key in arrays and not np.all(np.isfinite(arrays[key])):
             raise DatabaseError(f'{p}: array {key!r} holds NaN or infinite values')
+    if 'map_poses' in arrays:
+        mp = arrays['map_poses']
+        finite = np.isfinite(mp)
+        rows = np.all(finite, axis=1)
+        if np.any(finite.any(axis=1) & ~rows) or np.any(
+                np.linalg.norm(mp[rows, 3:], axis=1) < 1e-6):
+            raise DatabaseError(f"{p}: array 'map_poses' holds partly NaN rows or zero "
+                                'quaternions')
     if 'cloud_offsets' in arrays:
         off, struct = arrays['cloud_offsets'], arrays['cloud_struct']
         size = np.diff(off)
@@ -518,3 +563,35 @@ def load_database(path: str | Path, config: SolidConfig,
             if struct[i] >= 0:
                 clouds.put(seq, KeyframeCloud(pts[off[i]:off[i + 1]], int(struct[i])))
     return db
+
+
+@dataclass(frozen=True)
+class PriorMap:
+    """The map-frame poses of a saved database's scans, for relocalising in it.
+
+    Attributes:
+        poses: 4x4 ``T_map_sensor`` by ``(session, index)``.
+        source: ``'map'`` (the back end's corrected poses, version 3) or ``'odometry'`` (an
+            older file: the odometry poses it stored stand in for the map).
+    """
+
+    poses: dict[tuple[int, int], npt.NDArray[np.float64]]
+    source: str
+
+
+def read_map_poses(path: str | Path) -> PriorMap:
+    """The map-frame poses saved in a database (see :class:`PriorMap`); scans without one
+    are left out.
+
+    Raises:
+        DatabaseError: the file cannot be read (see :func:`read_database`).
+    """
+    meta, arrays = read_database(path)
+    source = 'map' if 'map_poses' in arrays else 'odometry'
+    rows = arrays['map_poses'] if source == 'map' else arrays['poses'].astype(np.float64)
+    out = {}
+    for session, index, row in zip(arrays['sessions'].tolist(), arrays['indices'].tolist(),
+                                   rows):
+        if np.all(np.isfinite(row)) and np.linalg.norm(row[3:]) > 1e-6:
+            out[(int(session), int(index))] = vector_to_matrix(row)
+    return PriorMap(out, source)

@@ -1,4 +1,4 @@
-"""Readers for point files users and tests feed to the core: PCD (ascii/binary) and KITTI .bin."""
+"""Point files: PCD (ascii/binary) and KITTI .bin readers, a binary PCD writer for maps."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
+from solid_ros.core.persistence import write_atomic
 
-__all__ = ['read_kitti_bin', 'read_pcd', 'read_points']
+__all__ = ['read_kitti_bin', 'read_pcd', 'read_points', 'write_pcd']
 
 _PCD_TYPES = {('F', 4): '<f4', ('F', 8): '<f8', ('I', 1): '<i1', ('I', 2): '<i2',
               ('I', 4): '<i4', ('I', 8): '<i8', ('U', 1): '<u1', ('U', 2): '<u2',
@@ -68,3 +69,21 @@ def read_points(path: str | Path) -> npt.NDArray[np.float32]:
     if str(path).endswith('.pcd'):
         return read_pcd(path)
     return read_kitti_bin(path)
+
+
+def write_pcd(path: str | Path, points: npt.ArrayLike) -> Path:
+    """Write (N, 3+) points as a binary PCD file of float32 x, y, z (atomically).
+
+    Raises:
+        SolidError: the points are not (N, 3+) or the file cannot be written.
+    """
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise SolidError(f'{path}: expected (N, 3+) points, got shape {pts.shape}')
+    xyz = np.ascontiguousarray(pts[:, :3], dtype='<f4')
+    n = len(xyz)
+    header = ('# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n'
+              f'SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n'
+              f'VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n')
+    data = header.encode('ascii') + xyz.tobytes()
+    return write_atomic(path, lambda f: f.write(data))

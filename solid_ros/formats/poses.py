@@ -16,11 +16,13 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import PoseError
-from solid_ros.core.geometry import vector_to_matrix
+from solid_ros.core.geometry import matrix_to_vector, vector_to_matrix
+from solid_ros.core.persistence import write_atomic
 
 __all__ = [
-    'PoseError', 'PoseTrack', 'load_reference', 'odometry_to_pose',
-    'parse_stamp_ns', 'read_kitti_poses', 'read_times', 'read_tum_poses',
+    'PoseError', 'PoseTrack', 'format_stamp_ns', 'load_reference', 'odometry_to_pose',
+    'parse_stamp_ns', 'read_kitti_poses', 'read_times', 'read_tum_poses', 'write_kitti_poses',
+    'write_tum_poses',
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -77,6 +79,54 @@ def parse_stamp_ns(text: str) -> int:
     if len(frac) > 9 and frac[9] >= '5':
         ns += 1
     return sign * ns
+
+
+def format_stamp_ns(stamp_ns: int) -> str:
+    """A stamp as exact decimal seconds with nine digits (the inverse of
+    :func:`parse_stamp_ns`)."""
+    ns = int(stamp_ns)
+    sign = '-' if ns < 0 else ''
+    sec, frac = divmod(abs(ns), 1_000_000_000)
+    return f'{sign}{sec}.{frac:09d}'
+
+
+def _checked_poses(poses: npt.ArrayLike, path: str | Path) -> FloatArray:
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] not in ((4, 4), (3, 4)) or not np.all(np.isfinite(arr)):
+        raise PoseError(f'{path}: expected finite (N, 4, 4) poses, got shape {arr.shape}')
+    return arr
+
+
+def write_tum_poses(path: str | Path, stamps_ns: npt.ArrayLike, poses: npt.ArrayLike) -> Path:
+    """Write a TUM trajectory, ``stamp tx ty tz qx qy qz qw`` per line (stamps exact to the
+    nanosecond), atomically; :func:`read_tum_poses` reads it back.
+
+    Raises:
+        PoseError: poses that are not finite (N, 4, 4), or as many stamps as poses.
+        SolidError: the file cannot be written.
+    """
+    arr = _checked_poses(poses, path)
+    stamps = np.asarray(stamps_ns, dtype=np.int64).ravel()
+    if len(stamps) != len(arr):
+        raise PoseError(f'{path}: {len(arr)} poses but {len(stamps)} stamps')
+    lines = [format_stamp_ns(int(s)) + ' ' + ' '.join(f'{v:.10g}' for v in matrix_to_vector(T))
+             for s, T in zip(stamps, arr)]
+    text = ''.join(line + '\n' for line in lines).encode()
+    return write_atomic(path, lambda f: f.write(text))
+
+
+def write_kitti_poses(path: str | Path, poses: npt.ArrayLike) -> Path:
+    """Write KITTI poses, the row-major 3x4 ``[R | t]`` per line, atomically;
+    :func:`read_kitti_poses` reads it back.
+
+    Raises:
+        PoseError: poses that are not finite (N, 4, 4).
+        SolidError: the file cannot be written.
+    """
+    arr = _checked_poses(poses, path)
+    lines = [' '.join(f'{v:.10g}' for v in T[:3, :4].ravel()) for T in arr]
+    text = ''.join(line + '\n' for line in lines).encode()
+    return write_atomic(path, lambda f: f.write(text))
 
 
 def _rows(path: str | Path, what: str) -> list[list[str]]:

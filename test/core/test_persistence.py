@@ -23,12 +23,14 @@ from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import DescriptorDatabase
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.errors import DatabaseError
+from solid_ros.core.geometry import matrix_to_vector, rpy_matrix
 from solid_ros.core.persistence import (
     FORMAT,
     check_save_target,
     is_database,
     load_database,
     read_database,
+    read_map_poses,
     remove_stale_temporaries,
     save_database,
 )
@@ -201,7 +203,7 @@ def test_crafted_metadata_is_refused(tmp_path: Path) -> None:
         'negative': (good | {'meta.npy': _meta(num_range=-40)}, 'valid num_range'),
         'meta not bytes': (good | {'meta.npy': _npy(np.zeros(3))}, 'not a solid_ros database'),
         'other format': (good | {'meta.npy': _meta(format='x' * 10_000)}, 'format'),
-        'version': (good | {'meta.npy': _meta(version=3)}, 'version 3'),
+        'version': (good | {'meta.npy': _meta(version=99)}, 'version 99'),
     }
     for name, (members, words) in cases.items():
         p = _npz(tmp_path / f'{name}.npz', members)
@@ -383,3 +385,59 @@ def test_keyframe_clouds_round_trip_and_verify_a_later_session(tmp_path: Path) -
     res = old.process(_sim_points(273), 10 * 1_000_000_000)
     assert res.loops == ()
     assert [a.reason for a in res.attempts][:1] == ['no_cloud']
+
+
+def _map_pose(i: int) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rpy_matrix(0.01 * i, -0.02 * i, 0.3 * i)
+    T[:3, 3] = [1000.0 + i, -2000.0 + 0.5 * i, 3.25]  # far from the origin: float64 kept
+    return T
+
+
+def test_map_poses_round_trip_and_older_files_serve_odometry(tmp_path: Path) -> None:
+    db = _filled(12)
+    poses = {(0, i): _map_pose(i) for i in range(12) if i != 4}
+    path = save_database(db, tmp_path / 'map.npz', map_poses=poses)
+    meta, arrays = read_database(path)
+    assert meta['version'] == 3 and arrays['map_poses'].dtype == np.float64
+    prior = read_map_poses(path)
+    assert prior.source == 'map' and set(prior.poses) == set(poses)
+    for key, T in poses.items():
+        np.testing.assert_allclose(prior.poses[key], T, atol=1e-9)
+    assert load_database(path, SolidConfig(session_id=1)).size == 12  # loads as before
+    # A version-2 file (saved before the back end): loads, its odometry poses stand in.
+    with zipfile.ZipFile(path) as zf:
+        members = {n: zf.read(n) for n in zf.namelist() if n != 'map_poses.npy'}
+    meta['version'] = 2
+    buf = io.BytesIO()
+    np.save(buf, np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8))
+    members['meta.npy'] = buf.getvalue()
+    old = read_map_poses(_npz(tmp_path / 'v2.npz', members))
+    assert old.source == 'odometry'
+    assert sorted(old.poses) == [(0, i) for i in range(0, 12, 3)]  # the scans with a pose
+    np.testing.assert_allclose(old.poses[(0, 3)][:3, 3], [3.0, 0.0, 0.0])
+    assert load_database(tmp_path / 'v2.npz', SolidConfig(session_id=1)).size == 12
+
+
+def test_bad_map_poses_are_refused(tmp_path: Path) -> None:
+    path = save_database(_filled(6), tmp_path / 'db.npz', map_poses={(0, 1): _map_pose(1)})
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    half = arrays['map_poses'].copy()
+    half[1, 2] = np.nan  # a row partly NaN
+    np.savez(tmp_path / 'half.npz', **dict(arrays, map_poses=half))
+    with pytest.raises(DatabaseError, match='map_poses'):
+        read_map_poses(tmp_path / 'half.npz')
+    with pytest.raises(DatabaseError, match='session 0 keyframe 2'):
+        save_database(_filled(6), tmp_path / 'x.npz', map_poses={(0, 2): np.full((4, 4), 1.0)})
+
+
+def test_detector_saves_the_map_poses_it_is_given(tmp_path: Path) -> None:
+    det = LoopDetector(SolidConfig(verify=False))
+    rng = np.random.default_rng(1)
+    for i in range(3):
+        det.process(rng.uniform(-30.0, 30.0, (2000, 3)), i * SEC)
+    det.save(tmp_path / 'db.npz', map_poses={(0, 2): matrix_to_vector(_map_pose(2))})
+    prior = read_map_poses(tmp_path / 'db.npz')
+    assert list(prior.poses) == [(0, 2)]
+    np.testing.assert_allclose(prior.poses[(0, 2)], _map_pose(2), atol=1e-9)

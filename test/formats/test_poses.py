@@ -12,12 +12,15 @@ import pytest
 from solid_ros.core.geometry import rot_z
 from solid_ros.formats.poses import (
     PoseError,
+    format_stamp_ns,
     load_reference,
     odometry_to_pose,
     parse_stamp_ns,
     read_kitti_poses,
     read_times,
     read_tum_poses,
+    write_kitti_poses,
+    write_tum_poses,
 )
 
 
@@ -132,3 +135,25 @@ def test_stamps_must_increase(tmp_path: Path, stamps: str, line: int, words: str
     tum.write_text(''.join(f'{s} 0 0 0 0 0 0 1\n' for s in stamps.split()))
     with pytest.raises(PoseError, match=f'tum.txt:{line}: pose stamp .* {words}'):
         read_tum_poses(tum)
+
+
+def test_tum_and_kitti_writers_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    poses = np.tile(np.eye(4), (20, 1, 1))
+    for k in range(20):
+        poses[k, :3, :3] = rot_z(rng.uniform(-3.0, 3.0))
+        poses[k, :3, 3] = rng.uniform(-2000.0, 2000.0, 3)
+    stamps = 1_700_000_000_123_456_789 + np.arange(20, dtype=np.int64) * 100_000_001
+    tum = write_tum_poses(tmp_path / 'trajectory.tum', stamps, poses)
+    got_stamps, got = read_tum_poses(tum)
+    np.testing.assert_array_equal(got_stamps, stamps)  # exact to the nanosecond
+    np.testing.assert_allclose(got, poses, atol=1e-6)
+    kitti = write_kitti_poses(tmp_path / 'trajectory.kitti', poses)
+    np.testing.assert_allclose(read_kitti_poses(kitti), poses, atol=1e-6)
+    assert load_reference(tum).stamps_ns is not None and load_reference(kitti).stamps_ns is None
+    assert format_stamp_ns(-1_250_000_000) == '-1.250000000'
+    assert parse_stamp_ns(format_stamp_ns(-5)) == -5
+    with pytest.raises(PoseError, match='3 poses but 2 stamps'):
+        write_tum_poses(tmp_path / 'x.tum', stamps[:2], poses[:3])
+    with pytest.raises(PoseError, match='finite'):
+        write_kitti_poses(tmp_path / 'x.kitti', np.full((2, 4, 4), np.nan))
