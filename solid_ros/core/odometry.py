@@ -45,8 +45,10 @@ class OdomSample:
     Attributes:
         stamp_ns: its stamp, integer nanoseconds.
         pose: 4x4 ``T_odom_sensor`` (finite, a rotation).
-        covariance: 6x6 pose covariance (ROS order x, y, z, roll, pitch, yaw) when the source
-            gave a usable one (see :func:`usable_covariance`), else None.
+        covariance: 6x6 pose covariance (ROS order x, y, z, roll, pitch, yaw) as the source
+            gave it (None: none given). It may be unusable (all zero for 'unknown', NaN,
+            not positive definite): users check it with :func:`usable_covariance` and fall
+            back to a model.
         segment: odometry segment. Poses of one segment are linked by the odometry; a source
             that loses track (a registration-based one resetting on a cloud it cannot
             register) starts the next segment, whose poses nothing links to the earlier ones:
@@ -163,7 +165,9 @@ class StampedOdometry:
         T = np.asarray(pose, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise PoseError('odometry pose is not finite')
-        sample = OdomSample(int(stamp_ns), T, usable_covariance(covariance))
+        cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)
+        sample = OdomSample(int(stamp_ns), T, cov.reshape(6, 6) if cov is not None
+                            and cov.size == 36 else None)
         self._samples.append(sample)
         self._stamps = None
         return sample

@@ -83,6 +83,7 @@ class _Kf:
     odom: FloatArray
     covariance: Any
     segment: int
+    odom_segment: int = 0  # the odometry source's segment (it resets when it loses track)
 
 
 def _sigma_cov(sigmas: tuple[float, float]) -> FloatArray:
@@ -189,12 +190,14 @@ class PoseGraph:
             step = np.asarray(np.linalg.solve(prev.odom, T), dtype=np.float64)
             init = self._correction @ T
             jump = float(np.linalg.norm(step[:3, 3]))
-            if jump > cfg.backend_segment_jump_m:
+            reset = odom is not None and odom.segment != prev.odom_segment
+            if reset or jump > cfg.backend_segment_jump_m:
                 self._segment = self._segs.new()
                 rec = FactorRecord('prior', (key,), init, _sigma_cov(_WEAK_SIGMAS))
-                events.append(BackendEvent('segment', f'odometry jumped {jump:.1f} m between '
-                                           f'keyframes {prev.index} and {index}: new graph '
-                                           f'segment {self._segment}'))
+                why = (f'the odometry reset ({odom.reason or "new odometry segment"})'
+                       if reset and odom is not None else f'odometry jumped {jump:.1f} m')
+                events.append(BackendEvent('segment', f'{why} between keyframes {prev.index} '
+                                           f'and {index}: new graph segment {self._segment}'))
             else:
                 noise = odometry_step_noise(step, prev.covariance, cov, cfg)
                 if noise.bad:
@@ -202,7 +205,7 @@ class PoseGraph:
                                'not usable (NaN, negative or not positive definite): the '
                                'noise model is used instead')
                 rec = FactorRecord('odom', (key_of(prev.index), key), step, noise.covariance)
-        kf = _Kf(index, stamp_ns, T, cov, self._segment)
+        kf = _Kf(index, stamp_ns, T, cov, self._segment, 0 if odom is None else odom.segment)
         self._note_rebuild(self._solver.add([rec], {key: init}), events)
         self._kfs[index] = kf
         self._last = kf

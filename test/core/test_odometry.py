@@ -80,11 +80,14 @@ def test_stamped_odometry_pairs_like_nearest_stamp_and_refuses_non_finite_poses(
     got = src.pose_for(330)
     assert got is not None and got.stamp_ns == 300 and got.pose[0, 3] == pytest.approx(3.0)
     assert got.covariance is not None and src.nearest_gap_ns(1000) == 600
+    # A covariance is kept as given, for the back end to judge (and warn about).
+    odd = src.add(450, _matrix(4.5), np.full(36, math.nan))
+    assert odd.covariance is not None and usable_covariance(odd.covariance) is None
     bad = _matrix(0.0)
     bad[0, 3] = math.nan
     with pytest.raises(PoseError):
         src.add(500, bad)
-    assert len(src) == 3 and src.latest_stamp_ns == 400
+    assert len(src) == 3 and src.latest_stamp_ns == 450
     track = StampedOdometry.from_track([0, 10], np.stack([_matrix(0.0), _matrix(1.0)]), 5)
     paired = track.pose_for(9)
     assert paired is not None and paired.stamp_ns == 10

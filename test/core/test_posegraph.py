@@ -139,6 +139,22 @@ def test_odometry_jump_starts_a_segment_that_a_loop_ties_back() -> None:
     assert [k.segment for k in pg.keyframes()][78:82] == [0, 0, 1, 1]
 
 
+def test_an_odometry_source_reset_starts_a_segment_even_without_a_jump() -> None:
+    ref = square(120)
+    odo = drifting_odometry(ref, Drift())
+    pg = PoseGraph(CFG)
+    states = []
+    for k, T in enumerate(odo):  # a registration-based source lost track at keyframe 60
+        res = ScanResult(k * SEC, True, k, matrix_to_vector(T))
+        sample = OdomSample(k * SEC, T, segment=int(k >= 60),
+                            reason='cloud did not register' if k == 60 else None)
+        states.append(pg.update(res, sample))
+    (event,) = [e for s in states for e in s.events if e.kind == 'segment']
+    assert 'odometry reset (cloud did not register)' in event.message
+    assert 'keyframes 59 and 60' in event.message
+    assert [s.segment for s in states[58:62]] == [0, 0, 1, 1]
+
+
 def test_gtsam_failure_rebuilds_the_graph_and_keeps_the_loop(
         monkeypatch: pytest.MonkeyPatch) -> None:
     ref = square(170)
