@@ -401,6 +401,28 @@ class NodeConfig(_Schema):
     map_max_points: int = _p(1_000_000, 'Most points of the map; beyond it the voxel grows by '
                              'half until it fits', low=1, high=100_000_000)
 
+    # The back end's outputs (with backend on): frames, rates, files.
+    map_frame: str = _p('map', 'Frame of the corrected poses, path and map (parent of the '
+                        'map -> odom TF)', read_only=True)
+    odom_frame: str = _p('', "Odometry frame (child of the map -> odom TF); empty = the "
+                         "Odometry messages' header.frame_id ('odom' with kiss_icp)",
+                         read_only=True)
+    sensor_frame: str = _p('', "LiDAR frame, child of KISS-ICP's odom -> sensor TF; empty = "
+                           "the PointCloud2's header.frame_id", read_only=True)
+    tf_rate_hz: float = _p(20.0, 'Rate of the map -> odom TF broadcast (0 = none)', low=0.0,
+                           high=1000.0, read_only=True)
+    path_period_sec: float = _p(1.0, 'Least time between two ~/path messages (latched; only '
+                                'after a change)', low=0.05, high=3600.0)
+    map_period_sec: float = _p(10.0, 'Least time between two ~/map builds (latched; only after '
+                               'a change; 0 = no ~/map)', low=0.0, high=86400.0)
+    output_directory: str = _p('', 'Directory of ~/save_map (map.pcd) and ~/save_trajectory '
+                               '(trajectory.tum, trajectory.kitti); empty = both services '
+                               'refuse', read_only=True)
+    lio_sam_loop_topic: str = _p('', 'Also publish each loop as LIO-SAM takes external loops '
+                                 '(std_msgs/Float64MultiArray [query stamp, match stamp] in '
+                                 's; e.g. lio_loop/loop_closure_detection); empty = off',
+                                 read_only=True)
+
     # Odometry source; KISS-ICP's settings (solid_ros.core.kiss_odometry).
     odometry_source: str = _p('topic', "Pose of each cloud: 'topic' (the odom subscription, a "
                               "bag's Odometry or a poses file) or 'kiss_icp' (KISS-ICP "
