@@ -14,7 +14,8 @@ rejection ``reason``):
    candidates stop at. A candidate with more than ``verify_coarse_max_points`` coarse points
    is registered with an even subsample of that many (the cost grows with them).
 4. ``not_converged``: the fine stage (voxelised GICP on all points) did not converge within
-   ``verify_max_iterations``.
+   ``verify_max_iterations``, and its pose did not stand still when resumed (a stationary
+   pose counts as converged; see :func:`solid_ros.core.registration.align_fine`).
 5. ``overlap``: fewer than ``verify_min_overlap`` of the structure points support the
    alignment, in either direction (candidate into query, query into candidate).
 6. ``rmse``: the supporting points' RMS point-to-plane distance exceeds ``verify_max_rmse``.
