@@ -22,7 +22,10 @@ rejection ``reason``):
 7. ``conflict``: more than ``verify_max_conflict`` of one scan's points, or of its structure
    points alone, lie in space the other sensor saw through (in front of the surface it
    measured in their direction, by more than two voxels and 5 % of the range); directions it
-   saw nothing in do not count. Structure alone because the ground aligns anywhere and would
+   saw nothing in do not count, nor do points within a quarter voxel of one of that sensor's
+   own points (it saw a surface there: near objects' voxel centroids sit degrees away from
+   the directions their surfaces cover, which is occlusion, not contradiction). Structure
+   alone because the ground aligns anywhere and would
    dilute the evidence: on look-alike streets seen through a narrow field of view, false
    alignments put about 2-3 % of all points but 5-15 % of the structure points (trees,
    poles, building ends) where the other sensor saw through; all points because a wrong
