@@ -212,12 +212,22 @@ def build_trajectory(grid: StreetGrid, seed: int = 0, spacing: float = 2.0,
     step = np.gradient(xy_fine, axis=0)
     heading = np.unwrap(np.arctan2(step[:, 1], step[:, 0]))
     # Smooth heading jitter of a couple of degrees (vehicle not aligned with its path).
-    jitter = _smooth(rng.normal(0.0, 1.0, len(heading)), int(round(15.0 / _STEP)))
-    jitter *= np.radians(2.5) / max(float(np.std(jitter)), 1e-12)
-    heading = heading + jitter
+    heading = heading + _sway(rng, len(heading), int(round(15.0 / _STEP)), 2.5)
+    return _sample(xy_fine, heading, s_fine, spacing, revisit_radius, exclude_distance)
 
+
+def _sway(rng: np.random.Generator, n: int, window: int, std_deg: float) -> FloatArray:
+    """Smooth random heading offsets, radians, scaled to a standard deviation of ``std_deg``."""
+    sway = _smooth(rng.normal(0.0, 1.0, n), window)
+    sway *= np.radians(std_deg) / max(float(np.std(sway)), 1e-12)
+    return sway
+
+
+def _sample(path: FloatArray, heading: FloatArray, s_fine: FloatArray, spacing: float,
+            revisit_radius: float, exclude_distance: float) -> Trajectory:
+    """A pose every ``spacing`` metres along a fine path, with its revisit labels."""
     take = np.searchsorted(s_fine, np.arange(0.0, s_fine[-1], spacing))
-    xy = xy_fine[take]
+    xy = path[take]
     yaw = np.angle(np.exp(1j * heading[take]))
     distance = s_fine[take]
     label, revisit_of = revisit_labels(xy, yaw, distance, revisit_radius, exclude_distance)
@@ -311,12 +321,5 @@ def handheld_walk(room: Room, seed: int = 0, laps: int = 3, spacing: float = 0.2
     s_fine = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
     step = np.gradient(path, axis=0)
     heading = np.unwrap(np.arctan2(step[:, 1], step[:, 0]))
-    sway = _smooth(rng.normal(0.0, 1.0, len(heading)), 60)
-    sway *= np.radians(sway_deg) / max(float(np.std(sway)), 1e-12)
-    heading = _smooth(heading, 9) + sway
-    take = np.searchsorted(s_fine, np.arange(0.0, s_fine[-1], spacing))
-    xy = path[take]
-    yaw = np.angle(np.exp(1j * heading[take]))
-    distance = s_fine[take]
-    label, revisit_of = revisit_labels(xy, yaw, distance, revisit_radius, exclude_distance)
-    return Trajectory(xy=xy, yaw=yaw, distance=distance, label=label, revisit_of=revisit_of)
+    heading = _smooth(heading, 9) + _sway(rng, len(heading), 60, sway_deg)
+    return _sample(path, heading, s_fine, spacing, revisit_radius, exclude_distance)
