@@ -28,8 +28,9 @@ import numpy.typing as npt
 from solid_ros.core.errors import SolidError
 from solid_ros.core.geometry import rot_z
 
-__all__ = ['STRUCTURE_MAX_NZ', 'Alignment', 'KeyframeCloud', 'Query', 'RegistrationSettings',
-           'Source', 'Support', 'align_coarse', 'align_fine', 'load_small_gicp']
+__all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'KeyframeCloud', 'Query',
+           'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine',
+           'load_small_gicp']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -50,6 +51,10 @@ _STATIONARY_DEG = 0.5
 # A point this close (fine voxels) to a point of the other cloud lies where the other sensor
 # saw a surface: never a free-space conflict (see free_space_conflict).
 _EXPLAINED_VOXELS = 0.25
+# Plane thickness (smallest / middle eigenvalue of a point's neighbourhood) at which a
+# supporting point's information counts half (see Support.weighted_information); calibrated
+# with test/bench/bench_nees.py (README, Loop verification, covariance).
+PLANE_THICKNESS_SCALE = 0.05
 
 
 def load_small_gicp() -> Any:
@@ -159,6 +164,21 @@ class Query:
     def ranges(self) -> FloatArray:
         """Range image of the cloud (computed on first use: most candidates never need it)."""
         return range_image(self.points)
+
+    @cached_property
+    def plane_thickness(self) -> FloatArray:
+        """Per point, the smallest over the middle eigenvalue of its neighbourhood's covariance
+        (the points the normal was estimated from): near 0 on a clean plane, near 1 where the
+        normal is not defined (a rough or curved surface, a corner, a line of points). small_gicp
+        regularises the covariances it keeps, so they are computed afresh here (first use)."""
+        if not self.usable:
+            return np.ones(self.size)
+        knn, _ = self.tree.batch_knn_search(self.points, _NEIGHBOURS)
+        nb = self.points[np.asarray(knn, dtype=np.intp)]
+        d = nb - nb.mean(axis=1, keepdims=True)
+        ev = np.linalg.eigvalsh(np.einsum('nki,nkj->nij', d, d))
+        out: FloatArray = ev[:, 0] / np.maximum(ev[:, 1], 1e-12)
+        return out
 
     def keyframe_cloud(self) -> KeyframeCloud:
         """The cloud to store for this scan: float32, structure first."""
@@ -397,6 +417,8 @@ class Support:
         information: 6x6 point-to-plane information sum J J^T over all supporting points,
             J = (t x n, n) for a left perturbation of ``T_qm`` (rotation first).
         inliers: number of supporting points.
+        weighted_information: (computed on first use) the information with each supporting
+            point weighted by how well its query plane is defined, and the sum of the weights.
     """
 
     def __init__(self, query: Query, source: Source, T_qm: FloatArray,
@@ -424,6 +446,7 @@ class Support:
                               / max(query.n_struct, 1), 0.0)
         self._moved, self._inlier, self._s_rows = moved, inlier, s_rows
         self._near_sq = np.asarray(sq)  # squared distance of each moved point to the query
+        self._jac, self._nn = jac, idx[inlier]
         self.overlap_match = int((inlier & struct_m).sum()) / max(int(struct_m.sum()), 1)
         # Query structure explained by the candidate: query points mapped into the match frame.
         _, tree = source.fine()
@@ -466,6 +489,17 @@ class Support:
         points = self._moved[self._inlier][self._s_rows]
         worst = _without_strongest_object(points, self._hz, self._settings.coarse_voxel)
         return max(worst / max(self._query.n_struct, 1), 0.0)
+
+    @cached_property
+    def weighted_information(self) -> tuple[FloatArray, float]:
+        """Point-to-plane information sum w J J^T, each supporting point weighted by ``w = 1 /
+        (1 + t / PLANE_THICKNESS_SCALE)`` with ``t`` its query point's plane thickness, and
+        the sum of the weights. A point's plane distance is only as good as the plane: where
+        the neighbourhood is no clean plane (rough or curved surfaces, corners, one ring of a
+        sparse sensor) the normal is uncertain and the residual misses that error."""
+        w = 1.0 / (1.0 + self._query.plane_thickness[self._nn] / PLANE_THICKNESS_SCALE)
+        info: FloatArray = (self._jac * w[:, None]).T @ self._jac
+        return info, float(w.sum())
 
     @cached_property
     def patches(self) -> int:

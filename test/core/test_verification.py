@@ -16,12 +16,19 @@ from solid_ros.core.descriptor import describe
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.geometry import rpy_matrix
 from solid_ros.core.matching import heading_hypotheses
-from solid_ros.core.registration import KeyframeCloud, Source, free_space_conflict, range_image
+from solid_ros.core.registration import (
+    KeyframeCloud,
+    Source,
+    Support,
+    free_space_conflict,
+    range_image,
+)
 from solid_ros.core.verification import REASONS, Verifier, registration_settings
 from solid_ros.sim import DEMO_SENSORS, avia_like, cast_scan
 from solid_ros.sim.drive import Drive, DriveConfig, pose_matrix
 from solid_ros.sim.scene import Room, build_room
 from solid_ros.sim.trajectory import handheld_walk
+from solid_ros.tools.uncertainty import nees
 
 pytest.importorskip('small_gicp', reason='small-gicp is not installed')
 
@@ -77,6 +84,31 @@ def test_true_revisit_is_verified_with_its_pose(q: int, m: int) -> None:
     assert cov.shape == (6, 6) and np.allclose(cov, cov.T)
     assert np.all(np.linalg.eigvalsh(cov) > 0.0)
     assert 0.5 < res.overlap <= 1.0 and res.rmse < 0.05  # type: ignore[attr-defined]
+    # The covariance covers the error: below the chi-square 99.9 % bound for 6 degrees of
+    # freedom (the calibration over whole drives is test/bench/bench_nees.py).
+    assert nees(res.T, ref, cov).full < 22.46  # type: ignore[attr-defined]
+
+
+def test_covariance_scale_and_plane_weights() -> None:
+    ref = _truth(273, 5)
+    yaws = [math.atan2(ref[1, 0], ref[0, 0]) + 0.05]
+    one = _verify(_scan(273)[0], _scan(5)[0], yaws)
+    four = _verify(_scan(273)[0], _scan(5)[0], yaws, CFG.replace(verify_covariance_scale=4.0))
+    np.testing.assert_allclose(four.covariance, 4.0 * one.covariance)  # type: ignore
+    # Plane thickness: near 0 on a clean plane, large where no plane is defined.
+    rng = np.random.default_rng(5)
+    plane = np.c_[rng.uniform(-5, 5, (400, 2)), rng.normal(0.0, 0.005, 400)]
+    blob = rng.normal([0.0, 0.0, 3.0], 0.3, (400, 3))
+    v = Verifier(CFG)
+    assert np.median(v.prepare(plane).plane_thickness) < 0.01
+    assert np.median(v.prepare(blob).plane_thickness) > 0.2
+    # Weighted information: each point counts at most once.
+    query = v.prepare(_cloud(_scan(273)[0]))
+    match = Source(v.prepare(_cloud(_scan(5)[0])).keyframe_cloud(), v.settings)
+    sup = Support(query, match, np.linalg.inv(ref), v.settings)
+    info, weight = sup.weighted_information
+    assert 0.0 < weight <= sup.inliers
+    assert np.linalg.eigvalsh(sup.information - info).min() > -1e-6 * np.abs(info).max()
 
 
 def test_wrong_heading_hypothesis_is_recovered_by_the_next() -> None:
