@@ -287,6 +287,10 @@ class SolidConfig(_Schema):
                                  'this, metres', low=0.0, high=100.0)
     verify_max_drift_deg: float = _p(1.0, 'Consistency: restarts 2 deg off must return within '
                                      'this, degrees', low=0.0, high=180.0)
+    verify_covariance_scale: float = _p(1.0, 'Factor on the published loop covariance (1 = the '
+                                        'calibrated model; raise it for errors the loops do '
+                                        'not see, e.g. a reference or odometry frame that is '
+                                        'itself off)', low=0.01, high=1e4)
     odom_check_drift: float = _p(0.1, 'Loops within this session must agree with its odometry: '
                                  "the loop's translation may differ from the odometry's by "
                                  'this fraction of the path driven between the two keyframes, '

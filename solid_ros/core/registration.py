@@ -29,8 +29,9 @@ from solid_ros.core.errors import SolidError
 from solid_ros.core.geometry import rot_z
 from solid_ros.core.keyframes import KeyframeCloud
 
-__all__ = ['STRUCTURE_MAX_NZ', 'Alignment', 'KeyframeCloud', 'Query', 'RegistrationSettings',
-           'Source', 'Support', 'align_coarse', 'align_fine', 'load_small_gicp']
+__all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'Query',
+           'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine',
+           'load_small_gicp']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -43,6 +44,18 @@ _GOOD_COARSE = 0.5  # coarse overlap that ends the search over heading hypothese
 # defaults, 0.1 deg / 1 mm, kept 80 % of coarse runs going to the iteration cap).
 _COARSE_ROTATION_EPS = math.radians(0.5)
 _COARSE_TRANSLATION_EPS = 0.01
+# A fine run that hit the iteration limit is resumed this long; a pose that moves less than
+# this (fine voxels, degrees) meanwhile is stationary: converged (see align_fine).
+_RESUME_ITERATIONS = 5
+_STATIONARY_VOXELS = 0.1
+_STATIONARY_DEG = 0.5
+# A point this close (fine voxels) to a point of the other cloud lies where the other sensor
+# saw a surface: never a free-space conflict (see free_space_conflict).
+_EXPLAINED_VOXELS = 0.25
+# Plane thickness (smallest / middle eigenvalue of a point's neighbourhood) at which a
+# supporting point's information counts half (see Support.weighted_information); calibrated
+# with test/bench/bench_nees.py (README, Loop verification, covariance).
+PLANE_THICKNESS_SCALE = 0.05
 
 
 def load_small_gicp() -> Any:
@@ -135,6 +148,21 @@ class Query:
         """Range image of the cloud (computed on first use: most candidates never need it)."""
         return range_image(self.points)
 
+    @cached_property
+    def plane_thickness(self) -> FloatArray:
+        """Per point, the smallest over the middle eigenvalue of its neighbourhood's covariance
+        (the points the normal was estimated from): near 0 on a clean plane, near 1 where the
+        normal is not defined (a rough or curved surface, a corner, a line of points). small_gicp
+        regularises the covariances it keeps, so they are computed afresh here (first use)."""
+        if not self.usable:
+            return np.ones(self.size)
+        knn, _ = self.tree.batch_knn_search(self.points, _NEIGHBOURS)
+        nb = self.points[np.asarray(knn, dtype=np.intp)]
+        d = nb - nb.mean(axis=1, keepdims=True)
+        ev = np.linalg.eigvalsh(np.einsum('nki,nkj->nij', d, d))
+        out: FloatArray = ev[:, 0] / np.maximum(ev[:, 1], 1e-12)
+        return out
+
     def keyframe_cloud(self) -> KeyframeCloud:
         """The cloud to store for this scan: float32, structure first."""
         return KeyframeCloud(self.points[self.structure_first].astype(np.float32),
@@ -217,7 +245,8 @@ def range_image(points: FloatArray) -> FloatArray:
 
 
 def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float,
-                        structure: int | None = None) -> float:
+                        structure: int | None = None,
+                        explained: npt.NDArray[np.bool_] | None = None) -> float:
     """Fraction of ``points`` (in the viewing sensor's frame) that lie in front of the surface
     that sensor saw in their direction, by more than ``margin`` plus 5 % of the range: the
     sensor looked through where they claim a surface is. Directions it saw nothing in do not
@@ -227,6 +256,18 @@ def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float,
     fraction over all points and over the structure points alone: the ground aligns anywhere
     and dilutes the first, so a misplaced wall, pole or tree shows in the second, while a
     wrong tilt shows on the ground in the first.
+
+    ``explained`` marks points that lie where the viewing sensor itself saw a surface (one of
+    its points is near): whatever its range image says in their 1-degree direction, they are
+    not in seen-through space, so they never count as a conflict (they still count as seen).
+    A keyframe cloud holds voxel centroids, and a near object's centroids sit degrees away
+    from the directions its surface covers: in the range image the edges of near objects
+    (table tops and shelf boards seen edge-on, box and pillar sides) look seen-through, and a
+    right alignment a degree off puts the other scan's points of the same objects there
+    (occlusion, not contradiction). The caller's radius, a quarter of a voxel, added no
+    wrong loop on eight simulated walks through a cluttered room; larger radii explain away
+    the points of wrong alignments in clutter too (a third of a voxel added one wrong loop on
+    four walks, half a voxel three on eight).
     """
     if not len(points):
         return 0.0
@@ -237,6 +278,8 @@ def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float,
         return 0.0
     conflict = np.zeros(len(r), dtype=bool)
     conflict[known] = r[known] < seen[known] - margin - 0.05 * seen[known]
+    if explained is not None:
+        conflict &= ~explained
     out = float(conflict.sum()) / float(known.sum())
     if structure is not None:
         n_known = int(known[:structure].sum())
@@ -308,14 +351,32 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
 
 def align_fine(query: Query, source: Source, T_qm: FloatArray,
                settings: RegistrationSettings) -> Alignment:
-    """Refine ``T_qm`` with voxelised GICP against the query's voxel map (all points)."""
+    """Refine ``T_qm`` with voxelised GICP against the query's voxel map (all points).
+
+    A run that ends at the iteration limit without small_gicp's convergence flag is continued
+    for ``_RESUME_ITERATIONS``; when that moves the pose by less than ``_STATIONARY_VOXELS``
+    fine voxels and ``_STATIONARY_DEG`` degrees, the pose is stationary and counts as
+    converged. Small near-field clouds end that way: the optimiser keeps refusing steps at
+    the optimum (its damping grows, the pose does not move) or alternates between two
+    correspondence sets a centimetre apart, so its step-size criterion is never met.
+    """
     sg = load_small_gicp()
     fine, _ = source.fine()
     res = sg.align(query.vmap, fine, np.asarray(T_qm, dtype=np.float64),
                    max_correspondence_distance=settings.neighbour_distance,
                    max_iterations=settings.max_iterations)
-    return Alignment(np.asarray(res.T_target_source, dtype=np.float64), bool(res.converged),
-                     int(res.iterations))
+    T = np.asarray(res.T_target_source, dtype=np.float64)
+    converged, iterations = bool(res.converged), int(res.iterations)
+    if not converged:
+        more = sg.align(query.vmap, fine, T,
+                        max_correspondence_distance=settings.neighbour_distance,
+                        max_iterations=_RESUME_ITERATIONS)
+        step = np.linalg.solve(T, np.asarray(more.T_target_source, dtype=np.float64))
+        cos = min(max((float(np.trace(step[:3, :3])) - 1.0) / 2.0, -1.0), 1.0)
+        converged = (float(np.linalg.norm(step[:3, 3])) <= _STATIONARY_VOXELS * settings.voxel
+                     and math.degrees(math.acos(cos)) <= _STATIONARY_DEG)
+        iterations += int(more.iterations)
+    return Alignment(T, converged, iterations)
 
 
 class Support:
@@ -339,6 +400,8 @@ class Support:
         information: 6x6 point-to-plane information sum J J^T over all supporting points,
             J = (t x n, n) for a left perturbation of ``T_qm`` (rotation first).
         inliers: number of supporting points.
+        weighted_information: (computed on first use) the information with each supporting
+            point weighted by how well its query plane is defined, and the sum of the weights.
     """
 
     def __init__(self, query: Query, source: Source, T_qm: FloatArray,
@@ -365,6 +428,8 @@ class Support:
         self.constraint = max(float(np.linalg.eigvalsh(self._hz.T @ self._hz)[0])
                               / max(query.n_struct, 1), 0.0)
         self._moved, self._inlier, self._s_rows = moved, inlier, s_rows
+        self._near_sq = np.asarray(sq)  # squared distance of each moved point to the query
+        self._jac, self._nn = jac, idx[inlier]
         self.overlap_match = int((inlier & struct_m).sum()) / max(int(struct_m.sum()), 1)
         # Query structure explained by the candidate: query points mapped into the match frame.
         _, tree = source.fine()
@@ -386,12 +451,19 @@ class Support:
         the structure points alone: the fraction of one cloud's points (where the other sensor
         saw a surface in their direction) lying in front of that surface, in space the other
         sensor saw through. The ground, which aligns anywhere, would dilute a misplaced wall or
-        tree in the fraction over all points."""
+        tree in the fraction over all points. A point within a quarter of a fine voxel of a
+        point of the other cloud lies where the other sensor saw a surface and is never a
+        conflict (see :func:`free_space_conflict`)."""
         query, source, T = self._query, self._source, self._T
         margin = self._settings.neighbour_distance
+        near = (_EXPLAINED_VOXELS * self._settings.voxel) ** 2
         back = (query.points[query.structure_first] - T[:3, 3]) @ T[:3, :3]
-        return max(free_space_conflict(self._moved, query.ranges, margin, source.n_struct),
-                   free_space_conflict(back, source.ranges, margin, query.n_struct))
+        _, tree = source.fine()
+        _, sq = tree.batch_nearest_neighbor_search(back)
+        return max(free_space_conflict(self._moved, query.ranges, margin, source.n_struct,
+                                       self._near_sq < near),
+                   free_space_conflict(back, source.ranges, margin, query.n_struct,
+                                       np.asarray(sq) < near))
 
     @cached_property
     def spread(self) -> float:
@@ -400,6 +472,17 @@ class Support:
         points = self._moved[self._inlier][self._s_rows]
         worst = _without_strongest_object(points, self._hz, self._settings.coarse_voxel)
         return max(worst / max(self._query.n_struct, 1), 0.0)
+
+    @cached_property
+    def weighted_information(self) -> tuple[FloatArray, float]:
+        """Point-to-plane information sum w J J^T, each supporting point weighted by ``w = 1 /
+        (1 + t / PLANE_THICKNESS_SCALE)`` with ``t`` its query point's plane thickness, and
+        the sum of the weights. A point's plane distance is only as good as the plane: where
+        the neighbourhood is no clean plane (rough or curved surfaces, corners, one ring of a
+        sparse sensor) the normal is uncertain and the residual misses that error."""
+        w = 1.0 / (1.0 + self._query.plane_thickness[self._nn] / PLANE_THICKNESS_SCALE)
+        info: FloatArray = (self._jac * w[:, None]).T @ self._jac
+        return info, float(w.sum())
 
     @cached_property
     def patches(self) -> int:

@@ -11,6 +11,12 @@ street the same furniture, so that places differ only by the random widths, gaps
 of buildings and the random positions of furniture (a hard case for a place descriptor, not
 an impossible one). ``facade_detail`` adds relief to the otherwise flat building boxes:
 recessed entrances, bay fronts and stepped upper floors, all made of more prisms.
+
+:func:`build_room` makes an indoor scene instead: one small room (7.5 x 6 m by default) with a
+ceiling, door openings onto corridors, shelves, cabinets, box stacks and pillars along the
+walls, a table island with clutter on it and chairs: near-field structure that occludes
+different things from viewpoints a metre apart (a handheld recording in a tight space;
+:func:`solid_ros.sim.trajectory.handheld_walk` walks it).
 """
 
 from __future__ import annotations
@@ -23,7 +29,8 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import ConfigError
 
-__all__ = ['LOOKALIKE_JITTER', 'SCENE_STYLES', 'Scene', 'StreetGrid', 'build_scene']
+__all__ = ['LOOKALIKE_JITTER', 'SCENE_STYLES', 'Room', 'Scene', 'StreetGrid', 'build_room',
+           'build_scene']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -126,14 +133,14 @@ class Scene:
     """Static world: ground plane z = 0 plus vertical box and cylinder prisms.
 
     Attributes:
-        grid: the road layout the scene was built around.
+        grid: the road layout the scene was built around (None for a room).
         boxes: (B, 7) rows cx, cy, hx, hy, yaw, z_low, z_high (half extents in the box frame).
         box_reflectivity: (B,) intensity returned by each box, in [0, 1].
         cylinders: (C, 5) rows cx, cy, radius, z_low, z_high.
         cylinder_reflectivity: (C,) intensity returned by each cylinder.
     """
 
-    grid: StreetGrid
+    grid: StreetGrid | None
     boxes: FloatArray
     box_reflectivity: FloatArray
     cylinders: FloatArray
@@ -423,3 +430,242 @@ def _part(building: list[float], side: float, u: tuple[float, float], v: tuple[f
     cos, sin = float(np.cos(yaw)), float(np.sin(yaw))
     return [cx + cos * uc - sin * ly, cy + sin * uc + cos * ly, 0.5 * (u[1] - u[0]),
             0.5 * (v[1] - v[0]), yaw, z[0], z[1]]
+
+
+@dataclass(frozen=True)
+class Room:
+    """An indoor room: interior [0, width] x [0, depth], floor z = 0, ceiling at ``height``.
+
+    Furniture stands in a ``strip`` along each wall and on the ``island`` in the middle; the
+    ``walkway`` between them, a rectangular ring, stays free for the walker.
+
+    Attributes:
+        width: interior extent along x, metres.
+        depth: interior extent along y, metres.
+        height: ceiling height, metres.
+        strip: depth of the furniture strip along the walls, metres.
+        walkway: width of the free ring between the strips and the island, metres.
+    """
+
+    width: float = 7.5
+    depth: float = 6.0
+    height: float = 2.7
+    strip: float = 0.8
+    walkway: float = 1.4
+
+    def __post_init__(self) -> None:
+        for key, value, low, high in (('width', self.width, 4.0, 30.0),
+                                      ('depth', self.depth, 4.0, 30.0),
+                                      ('height', self.height, 2.2, 6.0),
+                                      ('strip', self.strip, 0.4, 2.0),
+                                      ('walkway', self.walkway, 0.8, 3.0)):
+            if not low <= value <= high:
+                raise ConfigError(f'{key}: {value} is out of range; allowed [{low}, {high}]')
+        if min(self.island) < 0.3:
+            raise ConfigError(f'room: {self.width} x {self.depth} m leaves no island inside '
+                              f'strips of {self.strip} m and a walkway of {self.walkway} m')
+
+    @property
+    def centre(self) -> tuple[float, float]:
+        """The room centre (x, y)."""
+        return 0.5 * self.width, 0.5 * self.depth
+
+    @property
+    def island(self) -> tuple[float, float]:
+        """Half extents (x, y) of the island in the middle, metres."""
+        inset = self.strip + self.walkway
+        return 0.5 * self.width - inset, 0.5 * self.depth - inset
+
+
+class _Props:
+    """Box and cylinder rows of a room under construction, with their reflectivities."""
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.boxes: list[list[float]] = []
+        self.box_refl: list[float] = []
+        self.cyls: list[list[float]] = []
+        self.cyl_refl: list[float] = []
+
+    def box(self, cx: float, cy: float, hx: float, hy: float, yaw: float, z0: float,
+            z1: float) -> None:
+        self.boxes.append([cx, cy, hx, hy, yaw, z0, z1])
+        self.box_refl.append(float(self.rng.uniform(0.2, 0.9)))
+
+    def cylinder(self, cx: float, cy: float, r: float, z0: float, z1: float) -> None:
+        self.cyls.append([cx, cy, r, z0, z1])
+        self.cyl_refl.append(float(self.rng.uniform(0.3, 0.9)))
+
+    def scene(self) -> Scene:
+        return Scene(grid=None, boxes=np.asarray(self.boxes, dtype=np.float64).reshape(-1, 7),
+                     box_reflectivity=np.asarray(self.box_refl, dtype=np.float64),
+                     cylinders=np.asarray(self.cyls, dtype=np.float64).reshape(-1, 5),
+                     cylinder_reflectivity=np.asarray(self.cyl_refl, dtype=np.float64))
+
+
+def build_room(room: Room | None = None, seed: int = 0) -> Scene:
+    """Build a furnished room; the same seed gives the same room.
+
+    Walls (0.2 m thick) and a ceiling slab enclose the interior; two of the walls have a door
+    opening onto a short corridor behind them. Each wall's strip holds its own run of shelves
+    (boards at several heights, things on them), cabinets, stacks of boxes, pillars and
+    partition stubs, with wall-hung cabinets and radiators above and below them; the
+    island holds a table with monitors, boxes and clutter on it, chairs around it and maybe a
+    pillar. Nothing stands in the walkway.
+
+    Args:
+        room: room size, strips and walkway; ``Room()`` when omitted.
+        seed: seed of the numpy Generator that places the doors and the furniture.
+
+    Returns:
+        The scene (its ``grid`` is None).
+    """
+    rm = room if room is not None else Room()
+    p = _Props(np.random.default_rng([seed, 0x2003]))
+    doors = set(p.rng.choice(4, size=2, replace=False).tolist())
+    for side in range(4):
+        _wall(p, rm, side, side in doors)
+    t = 0.2
+    reach = 2.5  # the ceiling also covers the corridors
+    p.box(0.5 * rm.width, 0.5 * rm.depth, 0.5 * rm.width + reach, 0.5 * rm.depth + reach, 0.0,
+          rm.height, rm.height + t)
+    for side in range(4):
+        _furnish_strip(p, rm, side)
+    _furnish_island(p, rm)
+    return p.scene()
+
+
+def _wall_length(rm: Room, side: int) -> float:
+    return rm.width if side < 2 else rm.depth
+
+
+def _wall_box(p: _Props, rm: Room, side: int, u0: float, u1: float, v0: float, v1: float,
+              z0: float, z1: float) -> None:
+    """A box spanning u in [u0, u1] along wall ``side`` (0 south, 1 north, 2 west, 3 east;
+    u counter-clockwise seen from inside) and v in [v0, v1] from the wall into the room
+    (negative: behind the wall)."""
+    w, d = rm.width, rm.depth
+    uc, vc = 0.5 * (u0 + u1), 0.5 * (v0 + v1)
+    hu, hv = 0.5 * (u1 - u0), 0.5 * (v1 - v0)
+    if side == 0:  # y = 0, u along +x
+        p.box(uc, vc, hu, hv, 0.0, z0, z1)
+    elif side == 1:  # y = depth, u along -x
+        p.box(w - uc, d - vc, hu, hv, 0.0, z0, z1)
+    elif side == 2:  # x = 0, u along -y
+        p.box(vc, d - uc, hv, hu, 0.0, z0, z1)
+    else:  # x = width, u along +y
+        p.box(w - vc, uc, hv, hu, 0.0, z0, z1)
+
+
+def _wall(p: _Props, rm: Room, side: int, door: bool) -> None:
+    """Wall ``side`` (0.2 m thick, behind the interior); with ``door`` an opening onto a
+    corridor 1.2-2 m deep behind it."""
+    length, t, h = _wall_length(rm, side), 0.2, rm.height
+    if not door:
+        _wall_box(p, rm, side, -t, length + t, -t, 0.0, 0.0, h)
+        return
+    rng = p.rng
+    width = float(rng.uniform(0.9, 1.3))
+    u0 = float(rng.uniform(0.6, length - 0.6 - width))
+    _wall_box(p, rm, side, -t, u0, -t, 0.0, 0.0, h)
+    _wall_box(p, rm, side, u0 + width, length + t, -t, 0.0, 0.0, h)
+    _wall_box(p, rm, side, u0, u0 + width, -t, 0.0, 2.05, h)  # lintel
+    deep = float(rng.uniform(1.2, 2.0))
+    _wall_box(p, rm, side, -t, length + t, -deep - t, -deep, 0.0, h)  # the corridor's far wall
+    for u in (-t, length):  # its ends
+        _wall_box(p, rm, side, u, u + t, -deep, -t, 0.0, h)
+
+
+def _furnish_strip(p: _Props, rm: Room, side: int) -> None:
+    """Shelves, cabinets, box stacks, pillars and partition stubs along one wall's strip, and
+    wall-hung cabinets and radiators on the wall above and below them."""
+    rng = p.rng
+    length = _wall_length(rm, side)
+    pos = float(rng.uniform(0.0, 0.3))
+    while pos < length - 0.5:
+        width = float(rng.uniform(0.5, 1.8))
+        if pos + width > length:
+            break
+        kind = rng.random()
+        depth = float(rng.uniform(0.3, rm.strip - 0.2))
+        if kind < 0.3:
+            _shelf(p, rm, side, pos, width, depth)
+        elif kind < 0.5:  # cabinet
+            _wall_box(p, rm, side, pos, pos + width, 0.0, depth, 0.0,
+                      float(rng.uniform(0.7, 1.3)))
+        elif kind < 0.75:  # a stack of boxes
+            z = 0.0
+            for _ in range(int(rng.integers(1, 4))):
+                bw, bh = float(rng.uniform(0.3, min(0.8, width))), float(rng.uniform(0.2, 0.5))
+                u0 = pos + float(rng.uniform(0.0, width - bw))
+                _wall_box(p, rm, side, u0, u0 + bw, float(rng.uniform(0.0, 0.1)),
+                          float(rng.uniform(0.25, depth)), z, z + bh)
+                z += bh
+        elif kind < 0.87:  # a pillar standing off the wall
+            r = float(rng.uniform(0.12, 0.25))
+            u, v = pos + 0.5 * width, float(rng.uniform(r, rm.strip - r))
+            _wall_box(p, rm, side, u - r, u + r, v - r, v + r, 0.0, rm.height)
+        else:  # a partition stub reaching across the strip
+            u = pos + float(rng.uniform(0.0, width - 0.15))
+            _wall_box(p, rm, side, u, u + float(rng.uniform(0.08, 0.15)), 0.0,
+                      rm.strip - float(rng.uniform(0.0, 0.1)), 0.0,
+                      float(rng.uniform(1.8, rm.height)))
+        pos += width + float(rng.uniform(0.05, 0.5))
+    for _ in range(int(rng.integers(1, 4))):  # wall-hung cabinets and radiators
+        width = float(rng.uniform(0.6, 1.6))
+        u0 = float(rng.uniform(0.0, length - width))
+        if rng.random() < 0.6:
+            z0 = float(rng.uniform(1.5, rm.height - 0.8))
+            _wall_box(p, rm, side, u0, u0 + width, 0.0, float(rng.uniform(0.25, 0.4)), z0,
+                      z0 + float(rng.uniform(0.4, 0.7)))
+        else:
+            _wall_box(p, rm, side, u0, u0 + width, 0.0, 0.1, 0.15, 0.75)
+
+
+def _shelf(p: _Props, rm: Room, side: int, pos: float, width: float, depth: float) -> None:
+    """An open shelf: back panel, sides, boards at several heights, things on the boards."""
+    rng = p.rng
+    top = float(rng.uniform(1.6, min(2.3, rm.height - 0.1)))
+    heights = np.linspace(0.05, top - 0.03, int(rng.integers(3, 6))).tolist()
+    _wall_box(p, rm, side, pos, pos + width, 0.0, 0.02, 0.0, top)
+    for z in heights:
+        _wall_box(p, rm, side, pos, pos + width, 0.02, depth, z, z + 0.03)
+    for u in (pos, pos + width - 0.03):
+        _wall_box(p, rm, side, u, u + 0.03, 0.0, depth, 0.0, top)
+    for _ in range(int(rng.integers(1, 5))):
+        u0 = pos + float(rng.uniform(0.05, max(width - 0.35, 0.06)))
+        z0 = heights[int(rng.integers(0, len(heights) - 1))] + 0.03
+        _wall_box(p, rm, side, u0, u0 + float(rng.uniform(0.1, 0.3)), 0.05,
+                  float(rng.uniform(0.15, depth)), z0, z0 + float(rng.uniform(0.1, 0.3)))
+
+
+def _furnish_island(p: _Props, rm: Room) -> None:
+    """A table with things on it, chairs around it and maybe a pillar, inside the island."""
+    rng = p.rng
+    cx, cy = rm.centre
+    ix, iy = rm.island
+    hx = float(rng.uniform(0.6, 0.9)) * ix
+    hy = float(rng.uniform(0.5, 0.7)) * iy
+    top = float(rng.uniform(0.72, 0.78))
+    p.box(cx, cy, hx, hy, 0.0, top - 0.04, top)  # table top
+    for su in (-1.0, 1.0):  # legs
+        for sv in (-1.0, 1.0):
+            p.cylinder(cx + su * (hx - 0.06), cy + sv * (hy - 0.06), 0.03, 0.0, top - 0.04)
+    for _ in range(int(rng.integers(3, 8))):  # monitors, boxes, clutter on the table
+        bx, by = float(rng.uniform(0.05, 0.35)), float(rng.uniform(0.03, 0.25))
+        u = float(rng.uniform(-hx + bx, hx - bx))
+        v = float(rng.uniform(-hy + by, hy - by))
+        p.box(cx + u, cy + v, bx, by, float(rng.uniform(-0.5, 0.5)), top,
+              top + float(rng.uniform(0.05, 0.5)))
+    room_y = iy - hy  # chairs stand between the table and the walkway
+    if room_y >= 0.35:
+        for _ in range(int(rng.integers(2, 5))):
+            sv = float(rng.choice([-1.0, 1.0]))
+            u = float(rng.uniform(-hx + 0.25, hx - 0.25))
+            v = sv * (hy + min(0.22, room_y - 0.25))
+            p.box(cx + u, cy + v, 0.22, 0.2, 0.0, 0.42, 0.47)
+            p.box(cx + u, cy + v + sv * 0.17, 0.22, 0.03, 0.0, 0.47, 0.95)
+    if ix - hx >= 0.4 and rng.random() < 0.7:  # a pillar at one end of the table
+        end = float(rng.choice([-1.0, 1.0]))
+        r = min(float(rng.uniform(0.15, 0.25)), 0.5 * (ix - hx) - 0.05)
+        p.cylinder(cx + end * (hx + 0.5 * (ix - hx)), cy, r, 0.0, rm.height)

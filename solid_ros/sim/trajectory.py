@@ -8,6 +8,10 @@ west, and never comes back to a place: every scan is new (for false-positive rat
 road segment gets its own lane offset and a gentle weave, and the heading carries a small
 smooth jitter, so a revisit is never the same pose twice: the sensor is metres to the side and
 degrees off.
+
+:func:`handheld_walk` walks a room (:class:`solid_ros.sim.scene.Room`) instead: laps around its
+centre inside the free walking band, a different line and a look-around sway of the heading
+on each lap, the last lap the other way round.
 """
 
 from __future__ import annotations
@@ -19,10 +23,11 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import ConfigError
-from solid_ros.sim.scene import StreetGrid
+from solid_ros.sim.scene import Room, StreetGrid
 
 __all__ = ['DEFAULT_ROUTE', 'LABELS', 'NO_REVISIT_ROUTE', 'ROUTES', 'Route', 'Trajectory',
-           'build_trajectory', 'resolve_route', 'revisit_labels', 'route_grid', 'serpentine']
+           'build_trajectory', 'handheld_walk', 'resolve_route', 'revisit_labels', 'route_grid',
+           'serpentine']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -207,12 +212,22 @@ def build_trajectory(grid: StreetGrid, seed: int = 0, spacing: float = 2.0,
     step = np.gradient(xy_fine, axis=0)
     heading = np.unwrap(np.arctan2(step[:, 1], step[:, 0]))
     # Smooth heading jitter of a couple of degrees (vehicle not aligned with its path).
-    jitter = _smooth(rng.normal(0.0, 1.0, len(heading)), int(round(15.0 / _STEP)))
-    jitter *= np.radians(2.5) / max(float(np.std(jitter)), 1e-12)
-    heading = heading + jitter
+    heading = heading + _sway(rng, len(heading), int(round(15.0 / _STEP)), 2.5)
+    return _sample(xy_fine, heading, s_fine, spacing, revisit_radius, exclude_distance)
 
+
+def _sway(rng: np.random.Generator, n: int, window: int, std_deg: float) -> FloatArray:
+    """Smooth random heading offsets, radians, scaled to a standard deviation of ``std_deg``."""
+    sway = _smooth(rng.normal(0.0, 1.0, n), window)
+    sway *= np.radians(std_deg) / max(float(np.std(sway)), 1e-12)
+    return sway
+
+
+def _sample(path: FloatArray, heading: FloatArray, s_fine: FloatArray, spacing: float,
+            revisit_radius: float, exclude_distance: float) -> Trajectory:
+    """A pose every ``spacing`` metres along a fine path, with its revisit labels."""
     take = np.searchsorted(s_fine, np.arange(0.0, s_fine[-1], spacing))
-    xy = xy_fine[take]
+    xy = path[take]
     yaw = np.angle(np.exp(1j * heading[take]))
     distance = s_fine[take]
     label, revisit_of = revisit_labels(xy, yaw, distance, revisit_radius, exclude_distance)
@@ -251,3 +266,60 @@ def revisit_labels(xy: FloatArray, yaw: FloatArray, distance: FloatArray,
         label[i] = ('same' if turn <= np.radians(45.0) else
                     'reverse' if turn >= np.radians(135.0) else 'cross')
     return label, match
+
+
+def handheld_walk(room: Room, seed: int = 0, laps: int = 3, spacing: float = 0.25,
+                  sway_deg: float = 30.0, revisit_radius: float = 1.5,
+                  exclude_distance: float = 8.0) -> Trajectory:
+    """Walk laps around the centre of ``room``, a scan every ``spacing`` metres.
+
+    Each lap follows a rounded rectangle (a superellipse) along the room's walkway, straying
+    from its centre line by different amounts along the lap and from lap to lap; the heading
+    follows the path plus a smooth look-around sway (standard deviation ``sway_deg``), as a
+    person carrying the sensor looks around. The last lap goes the other way round (reverse
+    revisits); the first laps revisit each other in the same direction, never on the same
+    line nor with the same heading.
+
+    Args:
+        room: the room (its walkway).
+        seed: seed of the lines and the sway.
+        laps: number of laps (at least 2).
+        spacing: distance between scans, metres.
+        sway_deg: standard deviation of the heading's sway about the path, degrees.
+        revisit_radius: a scan revisits an earlier one closer than this, metres.
+        exclude_distance: earlier scans walked less than this many metres before do not count
+            as revisits.
+
+    Raises:
+        ConfigError: a value out of range.
+    """
+    if not 2 <= laps <= 20:
+        raise ConfigError(f'laps: {laps} is out of range; allowed [2, 20]')
+    if not 0.05 <= spacing <= 2.0:
+        raise ConfigError(f'spacing: {spacing} is out of range; allowed [0.05, 2]')
+    if not 0.0 <= sway_deg <= 90.0:
+        raise ConfigError(f'sway_deg: {sway_deg} is out of range; allowed [0, 90]')
+    rng = np.random.default_rng([seed, 0x4A1C])
+    cx, cy = room.centre
+    # Half axes of the walkway's centre line, and how far a lap may stray from it.
+    inset = room.strip + 0.5 * room.walkway
+    half = np.array([0.5 * room.width - inset, 0.5 * room.depth - inset])
+    stray = 0.5 * room.walkway - 0.3
+    theta = np.linspace(0.0, 2.0 * np.pi, 721)[:-1]
+    pieces = []
+    for lap in range(laps):
+        offset = float(rng.uniform(-0.6, 0.6))
+        wave = float(rng.uniform(0.2, 0.4))
+        phase = float(rng.uniform(0.0, 2.0 * np.pi))
+        out = stray * np.clip(offset + wave * np.sin(2.0 * theta + phase), -1.0, 1.0)
+        c, s = np.cos(theta), np.sin(theta)
+        # Superellipse of exponent 4: a rectangle with rounded corners.
+        loop = np.c_[np.sign(c) * np.abs(c) ** 0.5 * (half[0] + out),
+                     np.sign(s) * np.abs(s) ** 0.5 * (half[1] + out)]
+        pieces.append(loop if lap < laps - 1 else loop[::-1])
+    path = np.concatenate(pieces) + [cx, cy]
+    s_fine = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+    step = np.gradient(path, axis=0)
+    heading = np.unwrap(np.arctan2(step[:, 1], step[:, 0]))
+    heading = _smooth(heading, 9) + _sway(rng, len(heading), 60, sway_deg)
+    return _sample(path, heading, s_fine, spacing, revisit_radius, exclude_distance)

@@ -1,4 +1,4 @@
-"""Scene styles ('varied', 'lookalike') and facade detail."""
+"""Scene styles ('varied', 'lookalike'), facade detail, and the indoor room."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ import pytest
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.descriptor import describe
 from solid_ros.core.errors import ConfigError
-from solid_ros.sim import Drive, DriveConfig, StreetGrid, build_scene, cast_scan, hdl64
+from solid_ros.sim import Drive, DriveConfig, StreetGrid, avia_like, build_scene, cast_scan, hdl64
 from solid_ros.sim.drive import pose_matrix
-from solid_ros.sim.scene import LOOKALIKE_JITTER
+from solid_ros.sim.scene import LOOKALIKE_JITTER, Room, build_room
+from solid_ros.sim.trajectory import handheld_walk
 
 
 def _buildings(scene_boxes: np.ndarray) -> np.ndarray:
@@ -107,3 +108,45 @@ def test_facade_detail_scan_lands_on_the_scene() -> None:
         assert drive.scene.surface_distance(world).max() < 1e-3
         # Relief was seen: points on bays, recesses and set-back floors are off the flat boxes.
         assert np.sum(flat.scene.surface_distance(world) > 0.3) > 20
+
+
+def test_room_is_reproducible_and_its_walkway_stays_free() -> None:
+    room = Room()
+    a, b, other = build_room(room, 3), build_room(room, 3), build_room(room, 4)
+    assert a.grid is None
+    np.testing.assert_array_equal(a.boxes, b.boxes)
+    np.testing.assert_array_equal(a.cylinders, b.cylinders)
+    assert a.boxes.shape != other.boxes.shape or not np.array_equal(a.boxes, other.boxes)
+    # Cluttered: shelves, boxes, a table with things on it, chairs.
+    assert len(a.boxes) > 40
+    walk = handheld_walk(room, 3)
+    at_hand = np.c_[walk.xy, np.full(len(walk), 1.4)]
+    # The walker never stands in furniture: at least 0.25 m clear at sensor height ...
+    assert a.surface_distance(at_hand, ground=False).min() > 0.25
+    # ... yet close to it: a tight space.
+    assert np.median(a.surface_distance(at_hand, ground=False)) < 1.5
+    # The street scenes are built by build_scene as before: a room is a separate builder.
+    assert build_scene(seed=5).grid is not None
+
+
+def test_room_scan_lands_on_the_room() -> None:
+    room = Room()
+    scene, walk = build_room(room, 1), handheld_walk(room, 1)
+    model = avia_like(min_range=0.5, mount_height=1.4)
+    for i in (0, 40, 90):
+        x, y, yaw = float(walk.xy[i, 0]), float(walk.xy[i, 1]), float(walk.yaw[i])
+        cloud = cast_scan(scene, model, x, y, yaw)
+        world = cloud[:, :3].astype(np.float64) @ pose_matrix(x, y, 1.4, yaw)[:3, :3].T
+        world += [x, y, 1.4]
+        assert scene.surface_distance(world).max() < 1e-3
+        # Enclosed: every ray returns (ceiling, walls, furniture), all within the room's reach.
+        assert len(cloud) == model.num_rays
+        assert np.linalg.norm(cloud[:, :3], axis=1).max() < 12.0
+        assert (world[:, 2] > room.height - 0.01).sum() > 100  # the ceiling is seen
+
+
+def test_room_validation() -> None:
+    with pytest.raises(ConfigError, match='width'):
+        Room(width=3.0)
+    with pytest.raises(ConfigError, match='island'):
+        Room(width=4.5, depth=4.5, strip=1.0, walkway=1.2)

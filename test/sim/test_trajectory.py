@@ -1,4 +1,5 @@
-"""Routes: the default one with revisits, the serpentine that never revisits, custom crossings."""
+"""Routes: the default one with revisits, the serpentine that never revisits, custom crossings;
+the handheld walk through a room."""
 
 from __future__ import annotations
 
@@ -6,12 +7,13 @@ import numpy as np
 import pytest
 
 from solid_ros.core.errors import ConfigError
-from solid_ros.sim.scene import StreetGrid
+from solid_ros.sim.scene import Room, StreetGrid
 from solid_ros.sim.trajectory import (
     DEFAULT_ROUTE,
     NO_REVISIT_ROUTE,
     ROUTES,
     build_trajectory,
+    handheld_walk,
     resolve_route,
     route_grid,
     serpentine,
@@ -73,3 +75,22 @@ def test_route_must_fit_the_grid_and_follow_roads() -> None:
         build_trajectory(StreetGrid(nx=2, ny=2), route=((0, 0), (3, 0)))
     with pytest.raises(ConfigError, match='one road'):
         build_trajectory(StreetGrid(), route=((0, 0), (1, 1)))
+
+
+def test_handheld_walk_revisits_a_room_in_both_directions() -> None:
+    room = Room()
+    walk = handheld_walk(room, 2)
+    assert len(walk) > 100 and np.all(np.diff(walk.distance) > 0)
+    # Inside the walkway ring: off the island and the wall strips.
+    off = np.abs(walk.xy - room.centre)
+    island = np.array(room.island)
+    assert np.all((off > island).any(axis=1))
+    assert np.all(off < np.array(room.centre) - room.strip)
+    labels = set(walk.label.tolist())
+    assert {'same', 'reverse'} <= labels
+    # Revisits look around: headings differ from the revisited scan's by degrees, not zero.
+    same = walk.label == 'same'
+    turn = np.abs(np.angle(np.exp(1j * (walk.yaw[same] - walk.yaw[walk.revisit_of[same]]))))
+    assert np.degrees(np.median(turn)) > 3.0
+    with pytest.raises(ConfigError, match='laps'):
+        handheld_walk(room, laps=1)
