@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from solid_ros.core.closure import LoopClosure
 from solid_ros.core.config import NodeConfig, SolidConfig
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.geometry import pose_to_vector
@@ -44,7 +45,7 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_one_record_per_cloud_with_its_odometry(bag: Path) -> None:
     direct = LoopDetector(CFG)
-    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), ReplayOptions()) as pipeline:
         assert pipeline.inputs.count == len(ROUTE) and pipeline.inputs.odometry_fed
         assert pipeline.inputs.odom_topic == '/odom'
         records = list(pipeline.run())
@@ -80,7 +81,7 @@ class _Shifted:
 
 def test_another_odometry_source_plugs_in(bag: Path) -> None:
     source = _Shifted()
-    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), ReplayOptions()) as pipeline:
         pipeline.odometry = source
         records = list(pipeline.run())
     assert source.sizes == [3000] * len(ROUTE)
@@ -90,7 +91,7 @@ def test_another_odometry_source_plugs_in(bag: Path) -> None:
         assert rec.result.pose[2] == 7.0
     # Without odometry for the detector the scans still go through, with no pose.
     options = ReplayOptions(node_config=NodeConfig(use_odom=False))
-    with ReplayPipeline(bag, LoopDetector(CFG), options) as pipeline:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), options) as pipeline:
         assert pipeline.odometry is None and not pipeline.inputs.odometry_fed
         assert pipeline.inputs.odometry is not None  # still read, as the reference
         assert all(r.odom is None and r.result is not None and r.result.pose is None
@@ -98,7 +99,7 @@ def test_another_odometry_source_plugs_in(bag: Path) -> None:
 
 
 def test_skipped_clouds_are_records_too(bag: Path) -> None:
-    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), ReplayOptions()) as pipeline:
         broken = pipeline.step(CloudScan(3, T0, None, 'truncated data'))
         assert broken.result is None and broken.skipped == 'truncated data'
         undecoded = pipeline.step(CloudScan(4, T0, None))
@@ -114,7 +115,7 @@ def test_skipped_clouds_are_records_too(bag: Path) -> None:
 
 
 def test_log_keeps_keyframes_without_descriptors(bag: Path) -> None:
-    with ReplayPipeline(bag, LoopDetector(CFG.replace(keyframe_min_sec=0.15)),
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG.replace(keyframe_min_sec=0.15))),
                         ReplayOptions()) as pipeline:
         records = list(pipeline.run())
     assert any(r.result is not None and r.result.descriptor is not None for r in records)
