@@ -70,7 +70,7 @@ def _trajectory(plt: Any, ev: Evaluation, pos: npt.NDArray[np.float64],
             label='reference' if estimates else 'trajectory')
     for name, est in (estimates or {}).items():
         colour, style = _ESTIMATES.get(name, ('black', ':'))
-        ax.plot(est[:, 0], est[:, 1], style, color=colour, lw=1.2, alpha=0.9,
+        ax.plot(est[:, 0], est[:, 1], style, color=colour, lw=1.4, alpha=0.95, zorder=4,
                 label=f'{name} (aligned to the reference)')
     pos_q = np.flatnonzero(ev.truth.has_loop)
     ax.plot(pos[pos_q, 0], pos[pos_q, 1], '.', color='#74a9cf', ms=4,
@@ -84,9 +84,10 @@ def _trajectory(plt: Any, ev: Evaluation, pos: npt.NDArray[np.float64],
                   and np.isfinite(r.trans_err_m)]
         edges = [(r.query, r.match, r.correct(*max_error)) for r in inside if r.published]
         rejected = [(r.query, r.match) for r in inside if not r.published]
+    faint = 0.1 if estimates else 0.25  # the trajectories must stay visible beneath them
     for q, m in rejected:
         ax.plot([pos[q, 0], pos[m, 0]], [pos[q, 1], pos[m, 1]], '-', color=_GREY, lw=0.5,
-                alpha=0.25)
+                alpha=faint)
     counts = {True: 0, False: 0}
     for q, m, ok in edges:
         counts[ok] += 1

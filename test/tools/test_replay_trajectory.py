@@ -1,4 +1,6 @@
-"""The replay's keyframe trajectory: the back end through solid_replay, its files, its errors.
+"""The replay's keyframe trajectory (solid_ros.tools.trajectory): the back end through
+solid_replay, its files, its errors (named apart from test/sim/test_trajectory.py: pytest
+imports test modules by basename).
 
 A short simulated drive (hdl64) that passes ten places and comes back to them, with odometry
 that is 2.5 m and 4 degrees off on the way back (drift piled up in between): the loops must
