@@ -2,10 +2,11 @@
 
 ``solid_demo`` (or ``python -m solid_ros.tools.demo``) with no bag makes the built-in drive once
 (cached under ``~/.cache/solid_ros/demo``, :mod:`solid_ros.tools.demo_cache`), replays it
-through the node's detector with the shipped YAML (the drive's drifting odometry, the bag's
-/odom, fed as the node's odom; scores against the reference poses, poses.txt), prints the
-summary and a per-revisit-kind table, and writes plots. With a bag it is ``solid_replay`` on
-that bag.
+through the node's loop closure with the shipped YAML (the drive's drifting odometry, the bag's
+/odom, fed as the node's odom; the presets turn the pose graph on; scores against the reference
+poses, poses.txt), prints the summary (ATE of the odometry and of the corrected keyframes
+among it) and a per-revisit-kind table, and writes plots (trajectory.png: reference, odometry
+and corrected). With a bag it is ``solid_replay`` on that bag (``--odometry kiss-icp`` too).
 """
 
 from __future__ import annotations
@@ -131,9 +132,11 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG, usage='%(prog)s [options]  |  %(prog)s BAG [solid_replay options]',
         description='Show loop closure end to end. Without BAG: simulate a LiDAR '
-        'drive that revisits places (cached after the first run), replay it through the '
-        'detector with the shipped YAML, print scores and write plots. With BAG: the same as '
-        'solid_replay BAG [options] (see solid_replay --help).')
+        'drive that revisits places with drifting odometry (cached after the first run), '
+        'replay it through the detector and the pose graph with the shipped YAML, print '
+        'scores (loops, ATE of the odometry and of the corrected trajectory) and write plots. '
+        'With BAG: the same as solid_replay BAG [options] (see solid_replay --help; e.g. '
+        '--odometry kiss-icp).')
     p.add_argument('--sensor', choices=sorted(SENSOR_PARAMS), default='hdl64',
                    help='simulated sensor: 64-beam 360-degree (hdl64: +2/-24.8 deg, '
                    'ouster_like: +-22.5 deg), 16-beam 360-degree (vlp16_like) or 70-degree '

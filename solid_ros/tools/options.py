@@ -18,10 +18,12 @@ from typing import Any, TextIO
 from solid_ros.core.config import NodeConfig
 from solid_ros.core.errors import ConfigError, PoseError
 
-__all__ = ['PROGRESS_MODES', 'ReplayOptions', 'check_degrees', 'check_fraction',
-           'check_metres', 'cli_number']
+__all__ = ['ODOMETRY_CHOICES', 'PROGRESS_MODES', 'ReplayOptions', 'check_degrees',
+           'check_fraction', 'check_metres', 'cli_number']
 
 PROGRESS_MODES = ('auto', 'bar', 'lines', 'quiet')
+# Where a replay's odometry comes from: the bag's Odometry topic, or KISS-ICP over the clouds.
+ODOMETRY_CHOICES = ('bag', 'kiss-icp')
 
 
 def check_metres(value: float) -> str | None:
@@ -64,7 +66,8 @@ _CHECKS: tuple[tuple[str, str, Callable[[float], str | None]], ...] = (
 # Options of one bag only (a fleet replay refuses them), with their command-line flags.
 _SINGLE_BAG = (('poses', '--poses'), ('times', '--times'), ('load_db', '--load-db'),
                ('save_db', '--save-db'), ('use_odom', '--no-odom'),
-               ('max_heading_deg', '--max-heading-deg'), ('plots', '--no-plots'))
+               ('max_heading_deg', '--max-heading-deg'), ('plots', '--no-plots'),
+               ('odometry', '--odometry'), ('map', '--map'))
 
 
 @dataclass(frozen=True)
@@ -77,6 +80,9 @@ class ReplayOptions:
         odom_topic: Odometry topic fed to the detector as the node's ``odom`` (default: the
             bag's only one, if any) and used as reference when ``poses`` is not given.
         use_odom: feed odometry to the detector (default ``node_config.use_odom``).
+        odometry: ``'bag'`` (the bag's Odometry topic) or ``'kiss-icp'`` (KISS-ICP registers
+            the clouds, with ``node_config``'s ``kiss_*`` settings); default: the node's
+            ``odometry_source`` (``'topic'`` is the bag's).
         poses: reference poses file (KITTI 3x4 or TUM); KITTI files pair with scans by order
             unless ``times`` gives their stamps.
         times: stamps of a KITTI poses file.
@@ -87,6 +93,7 @@ class ReplayOptions:
         target_precision: the sweep recommends the setting reaching this precision.
         out_dir: where to write candidates.csv, report.json and plots (None: nothing).
         plots: write PNG plots to ``out_dir`` when poses are available.
+        map: write the map of the keyframe clouds at their corrected poses (``map.pcd``).
         load_db: database file to load before the run (its scans are searched too).
         save_db: where to save the database after the run.
         params_file: recorded in the report.
@@ -102,6 +109,7 @@ class ReplayOptions:
     topic: str | None = None
     odom_topic: str | None = None
     use_odom: bool | None = None
+    odometry: str | None = None
     poses: str | Path | None = None
     times: str | Path | None = None
     radius: float = 5.0
@@ -111,6 +119,7 @@ class ReplayOptions:
     target_precision: float = 1.0
     out_dir: str | Path | None = None
     plots: bool = True
+    map: bool = False
     load_db: str | Path | None = None
     save_db: str | Path | None = None
     params_file: str | Path | None = None
@@ -125,6 +134,9 @@ class ReplayOptions:
             problem = None if value is None else check(value)
             if problem is not None:
                 raise ConfigError(f'{flag} {problem}, got {value}')
+        if self.odometry is not None and self.odometry not in ODOMETRY_CHOICES:
+            raise ConfigError(f'--odometry must be one of {", ".join(ODOMETRY_CHOICES)}, got '
+                              f'{self.odometry!r}')
         if self.progress not in PROGRESS_MODES:
             raise ConfigError(f'progress must be one of {", ".join(PROGRESS_MODES)}, got '
                               f'{self.progress!r}')
@@ -153,6 +165,13 @@ class ReplayOptions:
     def feed_odom(self) -> bool:
         """Whether the detector gets the odometry (``use_odom``, else the node's setting)."""
         return self.node_config.use_odom if self.use_odom is None else self.use_odom
+
+    @property
+    def odometry_mode(self) -> str:
+        """``'bag'`` or ``'kiss-icp'``: ``odometry``, else the node's ``odometry_source``."""
+        if self.odometry is not None:
+            return self.odometry
+        return 'kiss-icp' if self.node_config.odometry_source == 'kiss_icp' else 'bag'
 
     @property
     def tolerance_ns(self) -> int:

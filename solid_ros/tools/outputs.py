@@ -1,4 +1,5 @@
-"""What a replay writes into ``--out``: candidates.csv, report.json and the plots.
+"""What a replay writes into ``--out``: candidates.csv, report.json, the keyframe trajectory
+(trajectory.tum, trajectory.kitti), map.pcd with ``--map``, and the plots.
 
 The CSV columns are derived from :class:`~solid_ros.core.detector.LoopCandidate`
 (:func:`~solid_ros.formats.candidates.candidate_columns`): a layout names the fields in column
@@ -20,9 +21,11 @@ import numpy.typing as npt
 from solid_ros.core.detector import LoopCandidate
 from solid_ros.core.errors import SolidError
 from solid_ros.formats.candidates import candidate_columns, candidate_values
+from solid_ros.formats.pointfiles import write_pcd
 from solid_ros.tools.loops import LoopRecord
 from solid_ros.tools.reports import write_json
 from solid_ros.tools.result import ReplayResult
+from solid_ros.tools.trajectory import aligned_positions, write_trajectory
 
 __all__ = ['CSV_COLUMNS', 'CSV_EXTRA', 'CSV_LAYOUT', 'candidate_cells', 'write_outputs']
 
@@ -81,7 +84,8 @@ def candidate_cells(c: LoopCandidate, layout: Sequence[str], formats: Mapping[st
 
 
 def write_outputs(out: Path, r: ReplayResult, plots: bool) -> list[Path]:
-    """Write candidates.csv, the plots (with reference poses) and report.json into ``out``.
+    """Write candidates.csv, the trajectory files (keyframes with a pose), map.pcd (when
+    built), the plots (with reference poses) and report.json into ``out``.
 
     Raises:
         SolidError: the directory or a file cannot be written.
@@ -93,6 +97,10 @@ def write_outputs(out: Path, r: ReplayResult, plots: bool) -> list[Path]:
     files = [out / 'candidates.csv', out / 'report.json']
     try:
         _write_csv(files[0], r)
+        if r.trajectory.posed.any():
+            files += write_trajectory(out, r.trajectory)
+        if r.map is not None:
+            files.append(write_pcd(out / 'map.pcd', r.map.points))
         if plots and r.evaluation is not None and r.reference is not None:
             from solid_ros.tools.plots import write_plots
 
@@ -101,7 +109,8 @@ def write_outputs(out: Path, r: ReplayResult, plots: bool) -> list[Path]:
                                  threshold=r.config.distance_threshold, records=r.records,
                                  max_error=(loops['max_error_m'], loops['max_error_deg']),
                                  min_overlap=r.config.verify_min_overlap if r.config.verify
-                                 else None)
+                                 else None,
+                                 estimates=aligned_positions(r.trajectory, r.reference))
         r.report['files'] = [str(f) for f in files]
         write_json(files[1], r.report)
     except OSError as err:

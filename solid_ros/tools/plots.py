@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,11 +58,20 @@ def _pr(plt: Any, ev: Evaluation, threshold: float, path: Path) -> None:
     plt.close(fig)
 
 
+_ESTIMATES = {'odometry': ('#fd8d3c', '--'), 'corrected': ('#2c7fb8', '-')}
+
+
 def _trajectory(plt: Any, ev: Evaluation, pos: npt.NDArray[np.float64],
                 match: npt.NDArray[np.intp], records: Sequence[LoopRecord] | None,
-                max_error: tuple[float, float], path: Path) -> None:
+                max_error: tuple[float, float], path: Path,
+                estimates: Mapping[str, npt.NDArray[np.float64]] | None = None) -> None:
     fig, ax = plt.subplots(figsize=(6.5, 6), dpi=110)
-    ax.plot(pos[:, 0], pos[:, 1], '-', color=_GREY, lw=1, label='trajectory')
+    ax.plot(pos[:, 0], pos[:, 1], '-', color=_GREY, lw=1,
+            label='reference' if estimates else 'trajectory')
+    for name, est in (estimates or {}).items():
+        colour, style = _ESTIMATES.get(name, ('black', ':'))
+        ax.plot(est[:, 0], est[:, 1], style, color=colour, lw=1.4, alpha=0.95, zorder=4,
+                label=f'{name} (aligned to the reference)')
     pos_q = np.flatnonzero(ev.truth.has_loop)
     ax.plot(pos[pos_q, 0], pos[pos_q, 1], '.', color='#74a9cf', ms=4,
             label=f'queries with a true loop ({len(pos_q)})')
@@ -75,9 +84,10 @@ def _trajectory(plt: Any, ev: Evaluation, pos: npt.NDArray[np.float64],
                   and np.isfinite(r.trans_err_m)]
         edges = [(r.query, r.match, r.correct(*max_error)) for r in inside if r.published]
         rejected = [(r.query, r.match) for r in inside if not r.published]
+    faint = 0.1 if estimates else 0.25  # the trajectories must stay visible beneath them
     for q, m in rejected:
         ax.plot([pos[q, 0], pos[m, 0]], [pos[q, 1], pos[m, 1]], '-', color=_GREY, lw=0.5,
-                alpha=0.25)
+                alpha=faint)
     counts = {True: 0, False: 0}
     for q, m, ok in edges:
         counts[ok] += 1
@@ -90,7 +100,8 @@ def _trajectory(plt: Any, ev: Evaluation, pos: npt.NDArray[np.float64],
     ax.plot([], [], '-', color=_FALSE, label=f'{what}, false ({counts[False]})')
     if len(pos):
         ax.plot(pos[0, 0], pos[0, 1], 'k^', ms=7, label='start')
-    ax.set(xlabel='x (m)', ylabel='y (m)', title='Trajectory and loop edges')
+    ax.set(xlabel='x (m)', ylabel='y (m)', title='Trajectory and loop edges'
+           + (' (edges on the reference)' if estimates else ''))
     ax.set_aspect('equal', adjustable='datalim')
     ax.grid(alpha=0.3)
     ax.legend(loc='best', fontsize=8)
@@ -201,7 +212,8 @@ def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
                 match: npt.ArrayLike, threshold: float,
                 records: Sequence[LoopRecord] | None = None,
                 max_error: tuple[float, float] = (1.0, 3.0),
-                min_overlap: float | None = None) -> list[Path]:
+                min_overlap: float | None = None,
+                estimates: Mapping[str, npt.ArrayLike] | None = None) -> list[Path]:
     """Write the evaluation plots and return their paths.
 
     Args:
@@ -215,6 +227,8 @@ def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
         max_error: translation (m) and rotation (deg) limits of a correct loop.
         min_overlap: the configured ``verify_min_overlap`` (marked; None without
             verification).
+        estimates: (K, 3) positions per keyframe drawn beside the reference on the
+            trajectory plot, by name (``'odometry'``, ``'corrected'``), already aligned.
     """
     plt = _pyplot()
     out = Path(out_dir)
@@ -222,7 +236,8 @@ def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
     m = np.asarray(match, dtype=np.intp)
     paths = [out / name for name in PLOT_FILES]
     _pr(plt, ev, threshold, paths[0])
-    _trajectory(plt, ev, pos, m, records, max_error, paths[1])
+    est = {k: np.asarray(v, dtype=np.float64) for k, v in (estimates or {}).items()}
+    _trajectory(plt, ev, pos, m, records, max_error, paths[1], est)
     _distances(plt, ev, threshold, paths[2])
     _yaw(plt, ev, paths[3])
     _verification(plt, records, min_overlap, paths[4])

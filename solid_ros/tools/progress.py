@@ -3,6 +3,7 @@
 Modes: ``'bar'`` redraws one line (count, percent, scans/s, ETA) at most ``redraw_sec`` apart;
 ``'lines'`` prints a plain line every ``interval_sec`` seconds (for logs and CI);
 ``'quiet'`` prints nothing; ``'auto'`` picks bar when the stream is a terminal, else lines.
+:meth:`Progress.note` prints a log line in the same stream without breaking the bar.
 """
 
 from __future__ import annotations
@@ -107,6 +108,15 @@ class Progress:
             self._drawn = not final
         else:
             self.stream.write(self.text() + '\n')
+        self.stream.flush()
+
+    def note(self, line: str) -> None:
+        """Print a log line between progress reports (a bar is redrawn below it on the next
+        update); nothing when quiet."""
+        if self.mode == 'quiet':
+            return
+        self.clear()
+        self.stream.write(line + '\n')
         self.stream.flush()
 
     def close(self) -> None:

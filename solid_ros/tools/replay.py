@@ -12,8 +12,14 @@ record per scan; :mod:`~solid_ros.tools.scoring`, :mod:`~solid_ros.tools.reports
 :mod:`~solid_ros.tools.outputs` score, report and write it. Several bags are a fleet
 (:mod:`solid_ros.tools.fleet`).
 
-Usage: ``solid_replay BAG [--params FILE.yaml] [--topic /points]
-[--odom-topic T | --poses FILE [--times FILE]] [--out DIR] [--load-db F] [--save-db F]``.
+The scans go through the product's :class:`~solid_ros.core.closure.LoopClosure`: the detector
+and, with ``backend: true``, the pose graph, whose corrected keyframe poses are written as
+``trajectory.tum`` / ``trajectory.kitti`` (:mod:`solid_ros.tools.trajectory`) and scored
+(ATE, RPE) beside the odometry's. The odometry is the bag's Odometry topic or KISS-ICP over the
+clouds (``--odometry kiss-icp``).
+
+Usage: ``solid_replay BAG [--params FILE.yaml] [--topic /points] [--odometry bag|kiss-icp]
+[--odom-topic T | --poses FILE [--times FILE]] [--out DIR [--map]] [--load-db F] [--save-db F]``.
 """
 
 from __future__ import annotations
@@ -26,14 +32,17 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from solid_ros.core.closure import LoopClosure
 from solid_ros.core.config import NodeConfig, SolidConfig, check_parameters, load_parameter_file
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.errors import ConfigError, PoseError, SolidError
+from solid_ros.core.mapping import MapCloud, build_map, keyframe_clouds, mount_rotation
 from solid_ros.core.persistence import check_save_target
 from solid_ros.formats.poses import PoseTrack, load_reference
 from solid_ros.runtime import tune_allocator
 from solid_ros.tools.fleet import fleet_summary_lines, replay_fleet, write_fleet_outputs
 from solid_ros.tools.options import (
+    ODOMETRY_CHOICES,
     ReplayOptions,
     check_degrees,
     check_fraction,
@@ -41,12 +50,13 @@ from solid_ros.tools.options import (
     cli_number,
 )
 from solid_ros.tools.outputs import CSV_COLUMNS, write_outputs
-from solid_ros.tools.pipeline import BagInputs, ReplayPipeline
+from solid_ros.tools.pipeline import BagInputs, OdometryWrap, ReplayPipeline
 from solid_ros.tools.progress import Progress
-from solid_ros.tools.reports import PROG, replay_report
+from solid_ros.tools.reports import PROG, closure_report, replay_report
 from solid_ros.tools.result import ReplayResult
 from solid_ros.tools.scoring import score
 from solid_ros.tools.summary import summary_lines
+from solid_ros.tools.trajectory import Trajectory, keyframe_trajectory, trajectory_errors
 
 __all__ = ['CSV_COLUMNS', 'ReplayOptions', 'ReplayResult', 'build_parser', 'load_config',
            'main', 'replay', 'summary_lines']
@@ -72,13 +82,17 @@ def load_config(params: str | Path | None, node_name: str = 'solid_node',
 
 
 def replay(bag: str | Path, config: SolidConfig | None = None,
-           options: ReplayOptions | None = None, **changes: Any) -> ReplayResult:
-    """Replay a bag through the node's detector and score it when reference poses are known.
+           options: ReplayOptions | None = None, wrap_odometry: OdometryWrap | None = None,
+           **changes: Any) -> ReplayResult:
+    """Replay a bag through the node's loop closure (detector, and the back end with
+    ``config.backend``) and score it when reference poses are known.
 
     Args:
         bag: ROS 2 bag directory (MCAP or sqlite3) or ROS 1 .bag file.
         config: detector settings (default ``SolidConfig()``).
         options: what to read, how to score, where to write (default: the defaults).
+        wrap_odometry: applied to the odometry source the options chose (a plug-in: e.g.
+            the same odometry in another frame).
         **changes: :class:`ReplayOptions` fields replacing those of ``options``, e.g.
             ``replay(bag, cfg, poses='poses.txt', out_dir='out')``.
 
@@ -92,21 +106,34 @@ def replay(bag: str | Path, config: SolidConfig | None = None,
     poses = load_reference(opts.poses, opts.times) if opts.poses is not None else None
     if opts.save_db is not None:
         check_save_target(opts.save_db)  # refuse before the run, not after it
-    detector = (LoopDetector.load(opts.load_db, cfg) if opts.load_db is not None
-                else LoopDetector(cfg))
+    closure = (LoopClosure.load(opts.load_db, cfg) if opts.load_db is not None
+               else LoopClosure(LoopDetector(cfg)))
     t0 = time.perf_counter()
-    with ReplayPipeline(bag, detector, opts) as pipeline:
+    with ReplayPipeline(bag, closure, opts, wrap_odometry) as pipeline:
         _check_pose_count(poses, pipeline.inputs)
         log = pipeline.collect(Progress(pipeline.inputs.count, opts.progress, opts.stream))
     wall = time.perf_counter() - t0
     if opts.save_db is not None:
-        detector.save(opts.save_db)
+        closure.save(opts.save_db)
     scores = score(log, poses if poses is not None else pipeline.inputs.odometry, cfg, opts)
-    report = replay_report(pipeline.inputs, log, scores, detector, opts, wall)
-    result = ReplayResult(pipeline.inputs, cfg, log, scores, report, wall)
+    traj = keyframe_trajectory(log, closure)
+    report = replay_report(pipeline.inputs, log, scores, closure.detector, opts, wall)
+    report.update(closure_report(pipeline.inputs, log, closure, traj,
+                                 trajectory_errors(traj, scores.reference)))
+    result = ReplayResult(pipeline.inputs, cfg, log, scores, report, wall, traj,
+                          _map(closure, traj, opts) if opts.map else None)
     if opts.out_dir is not None:
         result.files = write_outputs(Path(opts.out_dir), result, opts.plots)
     return result
+
+
+def _map(closure: LoopClosure, traj: Trajectory, opts: ReplayOptions) -> MapCloud:
+    """The kept keyframe clouds at their corrected poses, thinned as the node's map."""
+    have = traj.posed
+    poses = dict(zip(traj.indices[have].tolist(), traj.corrected[have]))
+    ncfg = opts.node_config
+    return build_map(keyframe_clouds(closure.detector, poses), mount_rotation(closure.config),
+                     ncfg.map_voxel_size, ncfg.map_max_points)
 
 
 def _check_pose_count(poses: PoseTrack | None, inputs: BagInputs) -> None:
@@ -133,10 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line parser (``solid_replay --help``)."""
     p = _Parser(
         prog=PROG,
-        description='Replay a recorded bag through the same SOLiD loop detector the node runs '
-                    '(same parameter file), print loop candidates and, given reference poses, '
-                    'evaluate them: Recall@1, PR curve, F1max and its threshold, ROC AUC, yaw '
-                    'error; write candidates.csv, report.json and plots with --out.',
+        description='Replay a recorded bag through the same SOLiD loop detector and pose '
+                    'graph the node runs (same parameter file), print loop candidates and, '
+                    'given reference poses, evaluate them: Recall@1, PR curve, F1max and its '
+                    'threshold, ROC AUC, yaw error, ATE / RPE of the odometry and of the '
+                    'corrected trajectory; write candidates.csv, report.json, '
+                    'trajectory.tum/.kitti and plots with --out.',
         epilog='With several bags only --params, --node-name, --set, --topic, --odom-topic, '
                '--radius, --max-pose-error-m/-deg, --out, --progress and -q apply. '
                'Reference poses come from --poses (KITTI 3x4 rows, paired with scans by order '
@@ -165,6 +194,12 @@ def build_parser() -> argparse.ArgumentParser:
                         'one in the bag, if any)')
     p.add_argument('--no-odom', action='store_true',
                    help='do not feed odometry to the detector (like use_odom: false)')
+    p.add_argument('--odometry', choices=ODOMETRY_CHOICES, default=None,
+                   help="odometry fed to the detector and the back end: 'bag' (the bag's "
+                        "Odometry topic) or 'kiss-icp' (KISS-ICP registers the clouds, with "
+                        "the kiss_* parameters; the Odometry topic, if any, is then only the "
+                        "reference) (default: the parameter file's odometry_source, "
+                        "'topic' = bag)")
     p.add_argument('--poses', metavar='FILE',
                    help='reference poses: KITTI 3x4 (one per scan, or per --times stamp) or TUM')
     p.add_argument('--times', metavar='FILE',
@@ -193,6 +228,9 @@ def _output_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--out', metavar='DIR',
                    help='write candidates.csv, report.json and PNG plots here')
     p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    p.add_argument('--map', action='store_true',
+                   help='also write map.pcd: the keyframe clouds at their corrected poses '
+                        '(map_voxel_size, map_max_points)')
     p.add_argument('--load-db', metavar='F', help='database file to search as well (saved '
                                                   'by the node or --save-db)')
     p.add_argument('--save-db', metavar='F', help='save the database after the run')
@@ -222,7 +260,8 @@ def _options(args: argparse.Namespace) -> ReplayOptions:
     """The replay options the command line gives (the node settings come later)."""
     return ReplayOptions(
         topic=args.topic, odom_topic=args.odom_topic, use_odom=False if args.no_odom else None,
-        poses=args.poses, times=args.times, radius=args.radius,
+        odometry=args.odometry, map=args.map, poses=args.poses, times=args.times,
+        radius=args.radius,
         max_heading_deg=args.max_heading_deg, max_pose_error_m=args.max_pose_error_m,
         max_pose_error_deg=args.max_pose_error_deg, target_precision=args.target_precision,
         out_dir=args.out, plots=not args.no_plots, load_db=args.load_db, save_db=args.save_db,
@@ -246,6 +285,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.times and not args.poses:
         parser.error('--times needs --poses')
+    if args.map and not args.out:
+        parser.error('--map needs --out')
+    if args.no_odom and args.odometry is not None:
+        parser.error('--no-odom and --odometry exclude each other')
     options = _options(args)
     single = [flag for _, flag in options.single_bag()]
     if len(args.bag) > 1 and single:

@@ -13,13 +13,15 @@ from typing import Any
 
 import numpy as np
 
+from solid_ros.core.closure import LoopClosure
 from solid_ros.core.detector import LoopDetector
 from solid_ros.tools.evaluation import sweep_table
 from solid_ros.tools.options import ReplayOptions
 from solid_ros.tools.pipeline import STAGES, BagInputs, ScanLog
 from solid_ros.tools.scoring import Scores
+from solid_ros.tools.trajectory import Trajectory, keyframe_rows
 
-__all__ = ['jsonable', 'replay_report', 'write_json']
+__all__ = ['closure_report', 'jsonable', 'replay_report', 'write_json']
 
 PROG = 'solid_replay'
 
@@ -88,6 +90,34 @@ def replay_report(inputs: BagInputs, log: ScanLog, scores: Scores, detector: Loo
     }
 
 
+def closure_report(inputs: BagInputs, log: ScanLog, closure: LoopClosure, traj: Trajectory,
+                   errors: dict[str, Any] | None) -> dict[str, Any]:
+    """The report's sections on the odometry, the back end and the keyframe trajectory.
+
+    Args:
+        inputs: what was read from the bag (the odometry source).
+        log: what the run gave (events, odometry per keyframe).
+        closure: the loop closure after the run.
+        traj: the keyframes' odometry and corrected poses.
+        errors: :func:`~solid_ros.tools.trajectory.trajectory_errors` (None: no reference).
+    """
+    graph = closure.graph
+    backend = None if graph is None else {
+        'loops': {k: v for k, v in sorted(graph.counts.items()) if v},  # no zero counts
+        'loops_in_graph': len(graph.loops),
+        'segments': len(set(traj.segments[traj.segments >= 0].tolist())),
+        'anchored': graph.anchored, 'rebuilds': graph.rebuilds,
+        'correction': [float(v) for v in graph.correction().ravel()]}
+    return {
+        'odometry': {'source': inputs.odometry_source, 'topic': inputs.odom_topic,
+                     'posed_scans': log.posed, 'resets': log.events['odometry_reset']},
+        'backend': backend,
+        'events': {'counts': dict(sorted(log.events.items())), 'lines': log.lines},
+        'trajectory': errors,
+        'keyframes': keyframe_rows(traj),
+    }
+
+
 def _percentiles(ms: Sequence[float]) -> dict[str, float | None]:
     if not ms:
         return {'mean': None, 'p50': None, 'p90': None, 'p99': None, 'max': None}
@@ -102,6 +132,8 @@ def _timings(log: ScanLog, wall_sec: float) -> dict[str, Any]:
             'scans_per_sec': log.decoded / wall_sec if wall_sec > 0 else None,
             'read_decode_ms': _percentiles(log.read_ms),
             'detect_ms': _percentiles(log.detect_ms),
+            'odometry_ms': _percentiles(log.odom_ms),
+            'backend_ms': _percentiles(log.backend_ms),
             **{f'{stage}_ms': _percentiles([v for v in log.stage_ms(stage) if math.isfinite(v)])
                for stage in STAGES}}
 

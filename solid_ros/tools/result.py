@@ -11,10 +11,12 @@ import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import LoopCandidate
+from solid_ros.core.mapping import MapCloud
 from solid_ros.tools.evaluation import Evaluation
 from solid_ros.tools.loops import LoopRecord
 from solid_ros.tools.pipeline import BagInputs, ScanLog, published_best
 from solid_ros.tools.scoring import Scores
+from solid_ros.tools.trajectory import Trajectory
 
 __all__ = ['ReplayResult']
 
@@ -30,6 +32,8 @@ class ReplayResult:
         scores: its scores against the reference poses (empty without them).
         report: the JSON report (also written to ``out_dir/report.json``).
         wall_sec: time spent reading, decoding and detecting.
+        trajectory: the keyframes' odometry and corrected poses.
+        map: the keyframe clouds at their corrected poses (None: not asked for).
         files: files written.
     """
 
@@ -39,6 +43,8 @@ class ReplayResult:
     scores: Scores
     report: dict[str, Any]
     wall_sec: float
+    trajectory: Trajectory
+    map: MapCloud | None = None
     files: list[Path] = field(default_factory=list)
 
     @property

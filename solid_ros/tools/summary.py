@@ -22,12 +22,15 @@ def _fmt(v: Any, spec: str = '.3f') -> str:
 
 def summary_lines(r: ReplayResult) -> list[str]:
     """The human summary printed at the end of a run."""
-    lines = _run_lines(r)
+    lines = _run_lines(r) + _closure_lines(r.report)
     m = r.report['metrics']
     if m is None:
         lines.append('  evaluation        none (no reference poses: give --poses or an '
                      'Odometry topic)')
+        if r.files:
+            lines.append(f'  outputs           {", ".join(str(f) for f in r.files)}')
         return lines
+    lines += _trajectory_lines(r.report['trajectory'])
     lines += _score_lines(r.report, r.config.verify)
     if r.report['loop_sweep'] is not None:
         lines += _sweep_lines(r.report['loop_sweep'], m['radius_m'], r.config.verify)
@@ -60,6 +63,49 @@ def _run_lines(r: ReplayResult) -> list[str]:
         f'{clouds["dropped"]} dropped',
     ]
     return lines
+
+
+_SOURCES = {'bag': "the bag's Odometry topic", 'kiss-icp': 'KISS-ICP over the clouds',
+            'none': 'none (no pose: keyframes by time only, no odometry check, no back end)'}
+
+
+def _closure_lines(rep: dict[str, Any]) -> list[str]:
+    """Which odometry fed the detector, and what the back end did with the loops."""
+    odo = rep['odometry']
+    src = _SOURCES.get(odo['source'], odo['source'])
+    if odo['source'] == 'bag':
+        src += f' {odo["topic"]}'
+    if odo['source'] == 'kiss-icp':
+        src += f', {odo["resets"]} resets'
+    lines = [f'  odometry          {src}']
+    be = rep['backend']
+    if be is None:
+        return [*lines, '  back end          off (backend: false)']
+    loops = ', '.join(f'{k} {v}' for k, v in be['loops'].items()) or 'no loop'
+    events = {k: v for k, v in rep['events']['counts'].items() if k != 'odometry_reset'}
+    lines.append(f'  back end          {be["loops_in_graph"]} loops in the graph ({loops}); '
+                 f'{be["segments"]} segment(s)' + (', anchored in the loaded map'
+                                                   if be['anchored'] else '')
+                 + (f'; events {", ".join(f"{k} {v}" for k, v in events.items())}'
+                    if events else ''))
+    return lines
+
+
+def _trajectory_lines(t: dict[str, Any] | None) -> list[str]:
+    """ATE / RPE / drift of the odometry and of the corrected keyframes."""
+    if t is None:
+        return ['  trajectory        n/a (fewer than two keyframes with odometry and '
+                'reference poses)']
+    o, c = t['odometry'], t['corrected']
+    return [
+        f'  trajectory        ATE odometry {_fmt(o["ate_m"])} m -> corrected '
+        f'{_fmt(c["ate_m"])} m ({_fmt(t["ate_ratio"], ".1f")}x lower; SE(3)-aligned, '
+        f'{t["keyframes"]} keyframes, {t["path_m"]:.1f} m)',
+        f'                    RPE per {t["rpe_delta_m"]:g} m odometry {_fmt(o["rpe_m"])} m '
+        f'{_fmt(o["rpe_deg"], ".2f")} deg -> corrected {_fmt(c["rpe_m"])} m '
+        f'{_fmt(c["rpe_deg"], ".2f")} deg; odometry drift {_fmt(o["drift_pct"], ".2f")} % '
+        f'(end error {_fmt(o["end_error_m"])} m)',
+    ]
 
 
 def _score_lines(rep: dict[str, Any], verify: bool) -> list[str]:

@@ -30,6 +30,11 @@ def test_demo_runs_end_to_end_and_reuses_its_cache(tmp_path: Path,
     assert recall >= 0.8 and yaw_error < 1.0
     assert 'reverse' in text  # reported whether found or not
     assert 'descriptor top-1 within 5 m' in text
+    # The drive's drifting odometry, closed by the back end: the corrected ATE is lower.
+    assert 'ATE odometry' in text and '-> corrected' in text
+    traj = report['trajectory']
+    assert traj['corrected']['ate_m'] < 0.5 * traj['odometry']['ate_m']
+    assert (out / 'trajectory.tum').is_file()
     bags = list(cache.rglob('metadata.yaml'))
     assert len(bags) == 1
     mtime = bags[0].stat().st_mtime_ns

@@ -67,6 +67,18 @@ def test_odometry_settings_follow_the_node_config() -> None:
     assert ReplayOptions(node_config=node).tolerance_ns == 12_500_000
 
 
+def test_odometry_source_is_the_option_else_the_node_setting() -> None:
+    assert ReplayOptions().odometry_mode == 'bag'
+    kiss = NodeConfig(odometry_source='kiss_icp')
+    assert ReplayOptions(node_config=kiss).odometry_mode == 'kiss-icp'
+    assert ReplayOptions(node_config=kiss, odometry='bag').odometry_mode == 'bag'
+    assert ReplayOptions(odometry='kiss-icp').odometry_mode == 'kiss-icp'
+    with pytest.raises(ConfigError, match='--odometry must be one of bag, kiss-icp'):
+        ReplayOptions(odometry='kiss_icp')
+    assert ReplayOptions(odometry='kiss-icp', map=True).single_bag() == [
+        ('odometry', '--odometry'), ('map', '--map')]
+
+
 def test_single_bag_options_are_named() -> None:
     assert ReplayOptions(radius=2.0, topic='/p', out_dir='o').single_bag() == []
     opts = ReplayOptions(poses='p', save_db='d', use_odom=False, plots=False)

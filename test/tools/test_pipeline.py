@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from solid_ros.core.closure import LoopClosure
 from solid_ros.core.config import NodeConfig, SolidConfig
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.geometry import pose_to_vector
@@ -44,7 +45,7 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_one_record_per_cloud_with_its_odometry(bag: Path) -> None:
     direct = LoopDetector(CFG)
-    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), ReplayOptions()) as pipeline:
         assert pipeline.inputs.count == len(ROUTE) and pipeline.inputs.odometry_fed
         assert pipeline.inputs.odom_topic == '/odom'
         records = list(pipeline.run())
@@ -80,7 +81,7 @@ class _Shifted:
 
 def test_another_odometry_source_plugs_in(bag: Path) -> None:
     source = _Shifted()
-    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), ReplayOptions()) as pipeline:
         pipeline.odometry = source
         records = list(pipeline.run())
     assert source.sizes == [3000] * len(ROUTE)
@@ -90,7 +91,7 @@ def test_another_odometry_source_plugs_in(bag: Path) -> None:
         assert rec.result.pose[2] == 7.0
     # Without odometry for the detector the scans still go through, with no pose.
     options = ReplayOptions(node_config=NodeConfig(use_odom=False))
-    with ReplayPipeline(bag, LoopDetector(CFG), options) as pipeline:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), options) as pipeline:
         assert pipeline.odometry is None and not pipeline.inputs.odometry_fed
         assert pipeline.inputs.odometry is not None  # still read, as the reference
         assert all(r.odom is None and r.result is not None and r.result.pose is None
@@ -98,7 +99,7 @@ def test_another_odometry_source_plugs_in(bag: Path) -> None:
 
 
 def test_skipped_clouds_are_records_too(bag: Path) -> None:
-    with ReplayPipeline(bag, LoopDetector(CFG), ReplayOptions()) as pipeline:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), ReplayOptions()) as pipeline:
         broken = pipeline.step(CloudScan(3, T0, None, 'truncated data'))
         assert broken.result is None and broken.skipped == 'truncated data'
         undecoded = pipeline.step(CloudScan(4, T0, None))
@@ -114,7 +115,7 @@ def test_skipped_clouds_are_records_too(bag: Path) -> None:
 
 
 def test_log_keeps_keyframes_without_descriptors(bag: Path) -> None:
-    with ReplayPipeline(bag, LoopDetector(CFG.replace(keyframe_min_sec=0.15)),
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG.replace(keyframe_min_sec=0.15))),
                         ReplayOptions()) as pipeline:
         records = list(pipeline.run())
     assert any(r.result is not None and r.result.descriptor is not None for r in records)
@@ -130,3 +131,73 @@ def test_log_keeps_keyframes_without_descriptors(bag: Path) -> None:
     assert [published_best(res) for res in log.results] == [
         res.best is not None and bool(res.loops) for res in log.results]
     assert len(log.stage_ms('describe')) == len(kept)
+
+
+# -- KISS-ICP odometry over the clouds (a few real hku1 clouds) --------------------------------
+
+HKU1_CLOUDS = 16
+
+
+@pytest.fixture(scope='module')
+def hku1_bags(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The first hku1 clouds, with the recorded odometry (the reference) and without any."""
+    pytest.importorskip('kiss_icp', reason='kiss-icp is not installed')
+    from solid_ros.core.odometry import nearest_stamp
+    from solid_ros.formats.bags import Bag
+
+    with Bag(shared_data / 'hku1' / 'bag') as bag:
+        clouds = [(s.points, s.stamp_ns) for s, _ in zip(bag.clouds('/points'),
+                                                          range(HKU1_CLOUDS))]
+        track = bag.odometry('/odom_slam')
+    assert track.stamps_ns is not None
+    idx = nearest_stamp(track.stamps_ns, [s for _, s in clouds], 50_000_000)
+    root = tmp_path_factory.mktemp('hku1')
+    return {'odom': write_cloud_bag(root / 'odom', [(p, s, track.poses[i])
+                                                    for (p, s), i in zip(clouds, idx)]),
+            'clouds': write_cloud_bag(root / 'clouds', [(p, s, None) for p, s in clouds],
+                                      odom_topic=None)}
+
+
+def _avia() -> tuple[SolidConfig, NodeConfig]:
+    from project_paths import CONFIG_DIR
+
+    from solid_ros.tools.replay import load_config
+
+    return load_config(CONFIG_DIR / 'avia.yaml')
+
+
+def test_kiss_icp_gives_a_pose_per_cloud_and_the_bag_odometry_is_the_reference(
+        hku1_bags: dict[str, Path]) -> None:
+    from solid_ros.tools.replay import replay, summary_lines
+
+    cfg, ncfg = _avia()
+    r = replay(hku1_bags['odom'], cfg, node_config=ncfg, odometry='kiss-icp', progress='quiet')
+    assert r.inputs.odometry_source == 'kiss-icp' and r.report['reference'] == '/odom'
+    assert r.log.posed == r.log.decoded == HKU1_CLOUDS
+    assert r.report['odometry'] == {'source': 'kiss-icp', 'topic': '/odom',
+                                    'posed_scans': HKU1_CLOUDS, 'resets': 0}
+    assert r.report['timings']['odometry_ms']['p50'] > 0
+    # KISS-ICP's poses are its own (start at the identity), not the recorded ones.
+    first = r.trajectory.odometry[0]
+    np.testing.assert_allclose(first, np.eye(4), atol=1e-9)
+    t = r.report['trajectory']
+    assert t is not None and t['odometry']['ate_m'] < 0.2  # a short stretch, tracked
+    text = '\n'.join(summary_lines(r))
+    assert 'KISS-ICP over the clouds, 0 resets' in text and 'ATE odometry' in text
+
+
+def test_a_clouds_only_bag_gets_keyframes_and_the_back_end_with_kiss_icp(
+        hku1_bags: dict[str, Path]) -> None:
+    from solid_ros.tools.replay import replay
+
+    cfg, ncfg = _avia()
+    plain = replay(hku1_bags['clouds'], cfg, node_config=ncfg, progress='quiet')
+    assert plain.inputs.odometry_source == 'none' and plain.report['backend']['loops'] == {}
+    assert not plain.trajectory.posed.any()  # no pose: nothing in the graph
+    r = replay(hku1_bags['clouds'], cfg, node_config=ncfg, odometry='kiss-icp',
+               progress='quiet')
+    assert r.report['reference'] is None and r.report['trajectory'] is None
+    assert r.log.posed == HKU1_CLOUDS
+    # Keyframes every 0.5 m or 10 deg of KISS-ICP's motion: fewer than the clouds, all posed.
+    assert 2 <= r.keyframes < HKU1_CLOUDS and r.trajectory.posed.all()
+    assert [kf['segment'] for kf in r.report['keyframes']] == [0] * r.keyframes

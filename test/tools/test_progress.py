@@ -77,3 +77,23 @@ def test_quiet_and_unknown_total() -> None:
     assert line.startswith('4 scans  2.0 scans/s') and 'ETA' not in line
     with pytest.raises(ValueError):
         Progress(1, 'loud')
+
+
+def test_notes_are_lines_between_bar_redraws() -> None:
+    clock, out = _Clock(), _Tty()
+    p = Progress(4, 'bar', out, clock=clock)
+    clock.t += 0.5
+    p.update()
+    p.note('back end tie: segment 1 placed')
+    clock.t += 0.5
+    p.update()
+    p.close()
+    text = out.getvalue()
+    # The bar is erased before the line, and drawn again after it.
+    assert '\r\x1b[Kback end tie: segment 1 placed\n\r\x1b[K[' in text
+    quiet = io.StringIO()
+    Progress(4, 'quiet', quiet).note('x')
+    assert quiet.getvalue() == ''
+    lines = io.StringIO()
+    Progress(4, 'lines', lines).note('odometry reset')
+    assert lines.getvalue() == 'odometry reset\n'

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from solid_ros.core.geometry import rot_z, rpy_matrix
-from solid_ros.tools.trajectory_metrics import align_se3, ate_rmse, rpe
+from solid_ros.tools.trajectory_metrics import (
+    align_se3,
+    ate_rmse,
+    end_error,
+    path_length,
+    rpe,
+    rpe_by_distance,
+)
 
 
 def _track(n: int = 50) -> np.ndarray:
@@ -51,3 +58,20 @@ def test_known_errors() -> None:
         ate_rmse(est, ref[:-1])
     assert math.isnan(ate_rmse(np.zeros((0, 4, 4)), np.zeros((0, 4, 4))))
     assert math.isnan(rpe(ref, ref, 50)[0])
+
+
+def test_rpe_by_distance_and_end_error_on_a_known_drift() -> None:
+    # A straight 1 m-step line; the estimate's steps are 2 % too long.
+    ref = np.tile(np.eye(4), (31, 1, 1))
+    ref[:, 0, 3] = np.arange(31.0)
+    est = ref.copy()
+    est[:, 0, 3] *= 1.02
+    np.testing.assert_allclose(path_length(ref), np.arange(31.0))
+    t, r, n = rpe_by_distance(est, ref, 10.0)
+    assert n == 21 and t == pytest.approx(0.2) and r == pytest.approx(0.0, abs=1e-6)
+    assert end_error(est, ref) == pytest.approx(0.6)
+    assert rpe_by_distance(est, ref, 31.0)[2] == 0 and math.isnan(end_error(est[:1], ref[:1]))
+    # Pairs follow the reference path, not the index: with half-metre steps, 20 poses apart.
+    half = ref.copy()
+    half[:, 0, 3] *= 0.5
+    assert rpe_by_distance(half, half, 10.0)[2] == 11
