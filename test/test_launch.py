@@ -127,10 +127,13 @@ def test_expanded_node_command_is_accepted_by_solid_node(
     args = scan_arguments(argv)
     assert args.fully_qualified_name == f'/{NODE_NAME}'
     check_parameter_files(args)  # the node's own refusal rule: raises ConfigError
-    preset, extra = args.params_files
+    preset, *extra = args.params_files
     assert Path(preset).resolve() == CONFIG_DIR / f'{values["sensor"]}.yaml'
-    assert load_parameter_file(extra, args.fully_qualified_name) == {
-        'use_odom': values['use_odom'] == 'true'}
+    given_params: dict[str, object] = {}
+    for path in extra:
+        given_params.update(load_parameter_file(path, args.fully_qualified_name))
+    assert given_params == {'use_odom': values['use_odom'] == 'true',
+                            'odometry_source': values['odometry_source']}
     want = {'points': given.get('points', '/points'), 'odom': given.get('odom', '/odom')}
     assert [f'{k}:={v}' for k, v in want.items()] == [
         argv[i + 1] for i, a in enumerate(argv) if a == '-r']
@@ -160,11 +163,12 @@ def test_rviz_config_shows_cloud_odometry_and_latched_loop_markers() -> None:
     doc = yaml.safe_load(RVIZ_FILE.read_text(encoding='utf-8'))
     assert {'Panels', 'Visualization Manager', 'Window Geometry'} <= set(doc)
     manager = doc['Visualization Manager']
-    assert manager['Global Options']['Fixed Frame'] == 'odom'
-    displays = {d['Class']: d for d in rviz_displays()}
-    assert all(c.startswith(('rviz_default_plugins/', 'rviz_common/')) for c in displays)
+    assert manager['Global Options']['Fixed Frame'] == 'map'
+    displays = {d['Name']: d for d in rviz_displays()}
+    assert all(d['Class'].startswith(('rviz_default_plugins/', 'rviz_common/'))
+               for d in displays.values())
     topics = node_topics()
-    markers = displays['rviz_default_plugins/MarkerArray']
+    markers = displays['Loops']
     private = {name: kind for name, kind in topics['pub'].items() if name.startswith('~/')}
     assert private['~/loop_markers'] == 'MarkerArray'
     assert markers['Topic']['Value'] == f'/{NODE_NAME}/loop_markers'
@@ -175,12 +179,18 @@ def test_rviz_config_shows_cloud_odometry_and_latched_loop_markers() -> None:
     qos = publisher_qos('~/loop_markers')
     assert 'DurabilityPolicy.TRANSIENT_LOCAL' in qos and 'ReliabilityPolicy.RELIABLE' in qos
     # Cloud and odometry as the node subscribes to them (remapped together by the launch).
-    cloud = displays['rviz_default_plugins/PointCloud2']['Topic']
-    odom = displays['rviz_default_plugins/Odometry']['Topic']
+    cloud = displays['LiDAR points']['Topic']
+    odom = displays['Odometry']['Topic']
     assert (cloud['Value'], odom['Value']) == ('/points', '/odom')
     assert {topics['sub'][t['Value'][1:]] for t in (cloud, odom)} == {'PointCloud2', 'Odometry'}
     assert cloud['Reliability Policy'] == 'Best Effort'  # drivers publish best effort
     assert all(d['Enabled'] for d in displays.values())
+    # The back end's corrected path and map: latched by the node, read as latched.
+    for name, topic in (('Corrected path', '~/path'), ('Corrected map', '~/map')):
+        shown = displays[name]['Topic']
+        assert shown['Value'] == f'/{NODE_NAME}/{topic[2:]}'
+        assert shown['Durability Policy'] == 'Transient Local'
+    assert displays['Corrected odometry']['Topic']['Value'] == f'/{NODE_NAME}/odometry'
 
 
 def test_setup_installs_launch_and_rviz_under_share() -> None:

@@ -40,7 +40,8 @@ class GraphSnapshot:
         correction: ``T_map_odom`` (identity until the first keyframe).
         covariance: 6x6 covariance of the newest keyframe pose (ROS order, right perturbation
             in the sensor frame), or None.
-        stamps_ns: stamps of the keyframes in the graph, in order.
+        indices: indices of the keyframes in the graph, in order.
+        stamps_ns: their stamps.
         poses: their corrected poses ``T_map_sensor``, shape (N, 4, 4).
         odom: their odometry poses ``T_odom_sensor``, shape (N, 4, 4).
         loops: loops in the graph.
@@ -49,6 +50,8 @@ class GraphSnapshot:
     version: int = 0
     correction: FloatArray = field(default_factory=_eye)
     covariance: FloatArray | None = None
+    indices: npt.NDArray[np.int64] = field(
+        default_factory=lambda: np.zeros(0, dtype=np.int64))
     stamps_ns: npt.NDArray[np.int64] = field(
         default_factory=lambda: np.zeros(0, dtype=np.int64))
     poses: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
@@ -109,6 +112,12 @@ class GraphOutput:
             self._graph.reset()
             self._snapshot = GraphSnapshot(self._snapshot.version + 1)
 
+    def map_poses(self) -> dict[tuple[int, int], FloatArray]:
+        """Map-frame poses of every keyframe in the graph (this session and a loaded map),
+        by ``(session, index)``: what a saved database keeps for relocalisation."""
+        with self._lock:
+            return self._graph.map_poses()
+
     def values(self) -> dict[str, object]:
         """/diagnostics values of the back end."""
         snap, graph = self._snapshot, self._graph
@@ -126,6 +135,7 @@ class GraphOutput:
             version=self._snapshot.version + 1,
             correction=np.array(state.correction, dtype=np.float64),
             covariance=None if state.covariance is None else np.array(state.covariance),
+            indices=np.array([k.index for k in kfs], dtype=np.int64),
             stamps_ns=np.array([k.stamp_ns for k in kfs], dtype=np.int64),
             poses=np.array([k.pose for k in kfs]).reshape(-1, 4, 4),
             odom=np.array([k.odom for k in kfs]).reshape(-1, 4, 4),

@@ -49,13 +49,18 @@ from visualization_msgs.msg import MarkerArray
 from solid_ros.core.config import NodeConfig, SolidConfig
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
+from solid_ros.core.mapping import mount_rotation
 from solid_ros.core.odometry import OdomSample
-from solid_ros.core.persistence import check_save_target, remove_stale_temporaries
+from solid_ros.core.persistence import check_save_target, read_map_poses, remove_stale_temporaries
+from solid_ros.core.posegraph import PoseGraph
 from solid_ros.core.stamps import join_stamp, seconds_to_ns
 from solid_ros.formats.pointcloud2 import cloud_to_xyz
 from solid_ros.formats.poses import PoseError, odometry_to_pose
+from solid_ros.ros.backend_io import BackendIO
 from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
+from solid_ros.ros.graph_output import GraphOutput
 from solid_ros.ros.health import WARN_THROTTLE_SEC, InputHealth
+from solid_ros.ros.kiss_io import KissIO
 from solid_ros.ros.loop_output import LoopOutput
 from solid_ros.ros.markers import LoopMarkers
 from solid_ros.ros.odom_wait import OdometryWait
@@ -92,11 +97,14 @@ class SolidNode(Node):
             raise
         self._prepare_save_path()
         cfg = self._node_cfg
-        self._odom = (OdometryWait(seconds_to_ns(cfg.odom_tolerance_sec)) if cfg.use_odom
-                      else None)
+        self._kiss = KissIO(self, cfg) if cfg.odometry_source == 'kiss_icp' else None
+        self._odom = (OdometryWait(seconds_to_ns(cfg.odom_tolerance_sec))
+                      if cfg.use_odom and self._kiss is None else None)
+        self._cloud_frame = ''
         self._create_topics()
         self._health = InputHealth(
-            self._points_sub.topic_name, self._odom_sub.topic_name if cfg.use_odom else None,
+            self._points_sub.topic_name,
+            self._odom_sub.topic_name if self._odom is not None else None,
             cfg.qos_reliability, cfg.odom_tolerance_sec, self.count_publishers)
         self.stats = self._health.stats
         self._markers = (LoopMarkers(cfg.marker_max_loops, self._pub_markers.publish,
@@ -108,12 +116,14 @@ class SolidNode(Node):
         self.create_timer(_HEALTH_PERIOD_SEC, self._check_health)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._peers = self._start_peers() if cfg.peers else None
+        self._backend = self._start_backend()
         self._loop_output = LoopOutput(
             self._pub_cands.publish, self.get_logger(), self.stats, self._shared, self._markers,
             self._solid_cfg.session_id, self._peers.robots if self._peers is not None else ())
         self._stages = Stages(
             self._shared, self._health, self._pose_for, self._hand_on, self.get_logger(),
-            queue_size=cfg.queue_size, verify=self._solid_cfg.verify, use_odom=cfg.use_odom,
+            queue_size=cfg.queue_size, verify=self._solid_cfg.verify,
+            use_odom=self._odom is not None or self._kiss is not None,
             share=self._peers.share if self._peers is not None else None)
         self._stages.start()
         self.get_logger().info(
@@ -136,7 +146,7 @@ class SolidNode(Node):
             durability=DurabilityPolicy.TRANSIENT_LOCAL)) if cfg.marker_max_loops else None)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._points_sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
-        if cfg.use_odom:
+        if self._odom is not None:
             # Deep enough that a burst of odometry is not dropped before pairing.
             odom_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
                                   depth=max(100, cfg.qos_depth), reliability=reliability)
@@ -152,6 +162,30 @@ class SolidNode(Node):
         self._shared.set_fetch_cloud(peers.fetch)
         peers.start()
         return peers
+
+    def _start_backend(self) -> BackendIO | None:
+        """The pose graph and its outputs, when ``backend`` is on and there is odometry."""
+        solid, cfg = self._solid_cfg, self._node_cfg
+        if not solid.backend:
+            return None
+        if self._odom is None and self._kiss is None:
+            self.get_logger().info('back end off: no odometry (use_odom is false and '
+                                   'odometry_source is topic); loops are still published')
+            return None
+        prior = {}
+        if cfg.database_load_path:
+            prior = read_map_poses(Path(cfg.database_load_path).expanduser()).poses
+        output = GraphOutput(PoseGraph(solid, prior_map=prior), self.get_logger())
+        return BackendIO(self, cfg, output, self._shared, mount_rotation(solid),
+                         self._odom_frame_now)
+
+    def _odom_frame_now(self) -> str:
+        """The odometry frame: the parameter, KISS-ICP's, or the odometry messages'."""
+        if self._node_cfg.odom_frame:
+            return self._node_cfg.odom_frame
+        if self._kiss is not None:
+            return self._kiss.frame
+        return self._odom.frame_id if self._odom is not None else ''
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -211,25 +245,31 @@ class SolidNode(Node):
         except CloudError as err:
             self._stages.reject(str(err))
             return
+        self._cloud_frame = msg.header.frame_id
         self._stages.put((points, _header_ns(msg)))
 
     def _on_odom(self, msg: Odometry) -> None:
         assert self._odom is not None
         try:
-            self._odom.add(_header_ns(msg), odometry_to_pose(msg), msg.pose.covariance,
-                           msg.header.frame_id)
+            sample = self._odom.add(_header_ns(msg), odometry_to_pose(msg), msg.pose.covariance,
+                                    msg.header.frame_id)
         except PoseError as err:
             self.get_logger().warning(f'odometry message skipped: {err}',
                                       throttle_duration_sec=WARN_THROTTLE_SEC)
             return
         self._health.odom_received()
+        if self._backend is not None:
+            self._backend.odometry(msg, sample.pose)
 
     def _odom_frame(self) -> str:
         return self._odom.frame_id if self._odom is not None else ''
 
-    def _pose_for(self, stamp_ns: int) -> OdomSample | None:
-        """Odometry within ``odom_tolerance_sec`` of the cloud (waits briefly if it lags,
-        while someone publishes odometry)."""
+    def _pose_for(self, stamp_ns: int, points: Any) -> OdomSample | None:
+        """The cloud's pose: KISS-ICP's registration of it, or the odometry within
+        ``odom_tolerance_sec`` of it (waits briefly if it lags, while someone publishes
+        odometry)."""
+        if self._kiss is not None:
+            return self._kiss.pose_for(stamp_ns, points, self._cloud_frame)
         if self._odom is None:
             return None
         publishing = self.count_publishers(self._odom_sub.topic_name) > 0
@@ -251,8 +291,10 @@ class SolidNode(Node):
     def _hand_on(self, verified: Verified) -> None:
         """Every verified keyframe, in keyframe order, on the verify thread (the describe
         thread with ``verify`` off): the one place where each keyframe's result and paired
-        odometry go. A consumer of the whole flow (a pose graph) takes ``verified`` here."""
+        odometry go: the loops out first, then the pose graph."""
         self._loop_output.take(verified)
+        if self._backend is not None:
+            self._backend.take(verified)
 
     # -- services and diagnostics -----------------------------------------------------------
 
@@ -262,7 +304,8 @@ class SolidNode(Node):
             response.success, response.message = False, 'database_save_path is empty'
             return response
         try:
-            size = self._shared.save(path)
+            poses = self._backend.map_poses() if self._backend is not None else None
+            size = self._shared.save(path, poses)
         except (SolidError, OSError) as err:
             response.success, response.message = False, f'save failed: {err}'
             self.get_logger().error(response.message)
@@ -276,6 +319,8 @@ class SolidNode(Node):
         self._shared.replace(self._new_detector(load=False))
         if self._markers is not None:
             self._markers.clear()
+        if self._backend is not None:
+            self._backend.reset()
         response.success, response.message = True, 'database cleared'
         self.get_logger().info('database cleared by ~/reset')
         return response
@@ -300,6 +345,10 @@ class SolidNode(Node):
         values['inter_robot_loops'] = self.stats.inter_robot_loops
         if self._peers is not None:
             values.update(self._peers.diagnostics())
+        if self._backend is not None:
+            values.update(self._backend.values())
+        if self._kiss is not None:
+            values.update(self._kiss.values())
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
@@ -310,6 +359,8 @@ class SolidNode(Node):
         if self._odom is not None:
             self._odom.close()  # a describe thread waiting for odometry returns now
         self._stages.stop(_JOIN_SEC)
+        if self._backend is not None:
+            self._backend.stop(_JOIN_SEC)
         super().destroy_node()
 
 

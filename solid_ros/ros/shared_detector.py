@@ -18,6 +18,7 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import CloudFetcher, LoopCandidate, LoopDetector, Proposal, ScanResult
 from solid_ros.core.keyframes import KeyframeCloud
+from solid_ros.core.mapping import keyframe_clouds
 from solid_ros.formats.peers import DescriptorMessage
 
 __all__ = ['SharedDetector']
@@ -98,9 +99,11 @@ class SharedDetector:
                 detector.fetch_cloud = self._fetch_cloud
             self._detector = detector
 
-    def save(self, path: str) -> int:
+    def save(self, path: str,
+             map_poses: dict[tuple[int, int], FloatArray] | None = None) -> int:
         """Save the database to ``path`` (its folder made; the core writes a temporary file
-        and renames it over ``path``); return the scans saved.
+        and renames it over ``path``), with the back end's map-frame poses when given; return
+        the scans saved.
 
         Raises:
             SolidError, OSError: nothing was saved.
@@ -109,7 +112,7 @@ class SharedDetector:
         with self._describe_lock, self._verify_lock:
             size = self.size
             target.parent.mkdir(parents=True, exist_ok=True)
-            self._detector.save(target)
+            self._detector.save(target, map_poses or None)
         return size
 
     # -- peer robots (see solid_ros.ros.peers) -----------------------------------------------
@@ -133,6 +136,13 @@ class SharedDetector:
         """This robot's newest stored keyframes (for a peer's catch-up)."""
         with self._describe_lock:
             return self._detector.own_keyframes(limit)
+
+    def keyframe_clouds(self, poses: dict[int, FloatArray],
+                        ) -> list[tuple[FloatArray, npt.NDArray[np.float32]]]:
+        """``(pose, levelled points)`` of this session's kept keyframe clouds that have a pose
+        in ``poses`` (by index), for the map; under the stage-2 lock, which stores clouds."""
+        with self._verify_lock:
+            return keyframe_clouds(self._detector, poses)
 
     def values(self) -> dict[str, object]:
         """The detector's /diagnostics values: keyframe clouds and verification outcomes."""

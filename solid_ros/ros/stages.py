@@ -72,7 +72,8 @@ class Stages:
     Args:
         shared: the detector both stages use.
         health: counts drops and failures.
-        pair: the odometry for a cloud stamp (may wait briefly), or None.
+        pair: the odometry for a cloud (its stamp and points; may wait briefly, or register
+            the cloud), or None.
         hand_on: takes every verified keyframe, in keyframe order.
         log: where drops and failures are logged.
         queue_size: clouds that may wait for stage 1.
@@ -82,7 +83,8 @@ class Stages:
     """
 
     def __init__(self, shared: SharedDetector, health: InputHealth,
-                 pair: Callable[[int], OdomSample | None], hand_on: Callable[[Verified], None],
+                 pair: Callable[[int, npt.NDArray[np.floating[Any]]], OdomSample | None],
+                 hand_on: Callable[[Verified], None],
                  log: Log, *, queue_size: int, verify: bool, use_odom: bool,
                  share: Callable[[Proposal], None] | None = None) -> None:
         self.timings = StageTimings()
@@ -148,7 +150,7 @@ class Stages:
     def _describe_stage(self, cloud: Cloud) -> None:
         points, stamp_ns = cloud
         t0 = time.perf_counter()
-        odom = self._pair(stamp_ns)
+        odom = self._pair(stamp_ns, points)
         proposal = self._shared.propose(points, stamp_ns, None if odom is None else odom.pose)
         self.timings.add_total((time.perf_counter() - t0) * 1e3)
         stats = self._health.stats

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from solid_ros.core.errors import PoseError
+from solid_ros.core.odometry import usable_covariance
 from solid_ros.ros.odom_wait import OdometryWait
 
 SEC = 1_000_000_000
@@ -45,12 +46,13 @@ def test_pairs_the_nearest_pose_within_the_tolerance() -> None:
     assert sample is not None and sample.pose[0, 3] == 2.0
 
 
-def test_covariance_is_kept_when_usable() -> None:
+def test_covariance_is_kept_as_given_for_the_back_end_to_judge() -> None:
     odom = OdometryWait(tolerance_ns=SEC)
-    s1 = odom.add(1 * SEC, pose(0.0), np.zeros(36))
+    s1 = odom.add(1 * SEC, pose(0.0), np.zeros(36))  # 'unknown' in ROS
     s2 = odom.add(2 * SEC, pose(0.0), np.eye(6).reshape(-1) * 0.01)
-    assert s1.covariance is None
+    assert s1.covariance is not None and usable_covariance(s1.covariance) is None
     assert s2.covariance is not None and s2.covariance.shape == (6, 6)
+    assert usable_covariance(s2.covariance) is not None
 
 
 def test_refuses_a_non_finite_pose_and_keeps_what_it_had() -> None:

@@ -54,7 +54,7 @@ def run(config: SolidConfig, clouds: list[tuple[np.ndarray, int]], use_odom: boo
         threads.append(threading.current_thread().name)
         out.append(v)
 
-    def pair(stamp_ns: int) -> OdomSample | None:
+    def pair(stamp_ns: int, points: object) -> OdomSample | None:
         pose = np.eye(4)
         pose[0, 3] = stamp_ns / SEC
         return OdomSample(stamp_ns, pose) if stamp_ns % (2 * SEC) == 0 else None

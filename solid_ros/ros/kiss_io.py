@@ -1,0 +1,87 @@
+"""KISS-ICP as solid_node's odometry (``odometry_source: kiss_icp``).
+
+The describe thread registers each cloud (:class:`~solid_ros.core.kiss_odometry.KissOdometry`)
+before describing it, never a subscription callback. Each pose goes out as nav_msgs/Odometry
+on ``~/kiss/odometry`` and as the ``odom_frame -> sensor`` transform on ``/tf`` (frames from
+``odom_frame``, default ``odom``, and ``sensor_frame``, default the cloud's header frame), so
+the back end's map -> odom correction and RViz work with the node alone. A reset of the
+source (a cloud it cannot register) is logged with its reason; the back end starts a new
+graph segment on it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+
+from solid_ros.core.config import NodeConfig
+from solid_ros.core.kiss_odometry import KissOdometry
+from solid_ros.core.odometry import OdomSample
+from solid_ros.core.stamps import split_stamp
+from solid_ros.ros.graph_msgs import pose_msg, transform_msg
+
+__all__ = ['KissIO']
+
+DEFAULT_ODOM_FRAME = 'odom'
+
+
+class KissIO:
+    """KISS-ICP odometry with its topic and transform.
+
+    Args:
+        node: the node its publishers belong to.
+        cfg: the node's settings (``kiss_*``, ``odom_frame``, ``sensor_frame``).
+
+    Raises:
+        SolidError: kiss-icp is not installed (the message names the pip package).
+    """
+
+    def __init__(self, node: Node, cfg: NodeConfig) -> None:
+        self._source = KissOdometry(cfg)
+        self._log = node.get_logger()
+        self.frame = cfg.odom_frame or DEFAULT_ODOM_FRAME
+        self._sensor_frame = cfg.sensor_frame
+        self._pub = node.create_publisher(Odometry, '~/kiss/odometry', 10)
+        self._tf_pub: Any = None
+        try:
+            from tf2_msgs.msg import TFMessage
+
+            self._tf_pub = node.create_publisher(TFMessage, '/tf', 100)
+        except ImportError:
+            self._log.error('tf2_msgs is not installed: no odom -> sensor transform on /tf')
+
+    @property
+    def resets(self) -> int:
+        """Times the source lost track and restarted."""
+        return int(self._source.resets)
+
+    def pose_for(self, stamp_ns: int, points: npt.NDArray[np.floating[Any]],
+                 cloud_frame: str) -> OdomSample | None:
+        """Register the cloud; publish and return its pose (describe thread)."""
+        sample = self._source.pose_for(stamp_ns, points)
+        if sample is None:
+            return None
+        if sample.reason is not None:
+            self._log.warning(f'KISS-ICP odometry reset: {sample.reason} (segment '
+                              f'{sample.segment}, {self.resets} resets so far)')
+        child = self._sensor_frame or cloud_frame or 'lidar'
+        msg = Odometry()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = split_stamp(stamp_ns)
+        msg.header.frame_id, msg.child_frame_id = self.frame, child
+        msg.pose.pose = pose_msg(sample.pose)
+        self._pub.publish(msg)
+        if self._tf_pub is not None:
+            self._tf_pub.publish(transform_msg(sample.pose, stamp_ns, self.frame, child))
+        return sample
+
+    def values(self) -> dict[str, object]:
+        """/diagnostics values of the odometry."""
+        out: dict[str, object] = {'kiss_registered': self._source.registered,
+                                  'kiss_resets': self.resets}
+        for kind, count in sorted(dict(self._source.reset_counts).items()):
+            out[f'kiss_reset_{kind}'] = count
+        return out

@@ -1,0 +1,173 @@
+"""solid_node with the back end on, over real rclpy pub/sub: a drifting drive's revisit moves
+map -> odom on /tf, the corrected path, odometry and map come out, and the save services write
+only where they may."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
+pytest.importorskip('gtsam', reason='gtsam is not installed')
+pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+pytest.importorskip('tf2_msgs', reason='tf2_msgs is not installed (./run.sh builds it)')
+
+import test_node  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from nav_msgs.msg import Path as PathMsg  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy_msgs import make_cloud  # noqa: E402
+from sensor_msgs.msg import PointCloud2  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
+from tf2_msgs.msg import TFMessage  # noqa: E402
+
+from solid_ros.core.geometry import matrix_to_vector, vector_to_matrix  # noqa: E402
+from solid_ros.formats.pointcloud2 import cloud_to_xyz  # noqa: E402
+from solid_ros.formats.pointfiles import read_pcd  # noqa: E402
+from solid_ros.formats.poses import read_kitti_poses, read_tum_poses  # noqa: E402
+from solid_ros.sim.drive import Drive, DriveConfig  # noqa: E402
+
+# The node harness and fixtures of test_node (a module-scoped ROS domain, hku1 messages).
+AVIA, Harness, key, revisits = (test_node.AVIA, test_node.Harness, test_node.key,
+                                test_node._revisits)
+domain_id, harness, hku1 = test_node.domain_id, test_node.harness, test_node.hku1
+
+SEC = 1_000_000_000
+DRIVE = [5, 40, 80, 120, 273]  # scan 273 revisits scan 5
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _odom(stamp_ns: int, T: np.ndarray) -> Odometry:
+    msg = Odometry()
+    msg.header.frame_id, msg.child_frame_id = 'odom', 'lidar'
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, SEC)
+    x, y, z, qx, qy, qz, qw = (float(v) for v in matrix_to_vector(T))
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
+    p.x, p.y, p.z, o.x, o.y, o.z, o.w = x, y, z, qx, qy, qz, qw
+    return msg
+
+
+def _pose(msg: Any) -> np.ndarray:
+    p, o = msg.position, msg.orientation
+    return vector_to_matrix([p.x, p.y, p.z, o.x, o.y, o.z, o.w])
+
+
+def _listen(h: Harness, kind: type, topic: str, qos: Any = 10) -> list[Any]:
+    got: list[Any] = []
+    h.client.create_subscription(kind, topic, got.append, qos)
+    return got
+
+
+@pytest.fixture()
+def backend_node(harness: Callable[..., Harness], tmp_path: Path) -> Harness:
+    overrides = [Parameter('backend', value=True), Parameter('exclude_recent_frames', value=2),
+                 Parameter('distance_threshold', value=0.2),
+                 Parameter('num_candidates', value=3),
+                 Parameter('backend_segment_jump_m', value=1000.0),  # scans 70-300 m apart
+                 Parameter('map_period_sec', value=0.2), Parameter('path_period_sec', value=0.1),
+                 Parameter('output_directory', value=str(tmp_path / 'out')),
+                 Parameter('lio_sam_loop_topic', value='/lio_loop/loop_closure_detection')]
+    return harness(overrides, params_file=None)
+
+
+def test_a_revisit_corrects_the_pose_path_map_and_tf(backend_node: Harness,
+                                                     tmp_path: Path) -> None:
+    h = backend_node
+    tf = _listen(h, TFMessage, '/tf', 100)
+    corrected = _listen(h, Odometry, '/solid_node/odometry', 100)
+    paths = _listen(h, PathMsg, '/solid_node/path', LATCHED)
+    maps = _listen(h, PointCloud2, '/solid_node/map', LATCHED)
+    lio = _listen(h, Float64MultiArray, '/lio_loop/loop_closure_detection', 10)
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))  # its odometry drifts
+    messages = []
+    for k, i in enumerate(DRIVE):
+        messages.append(('odom', _odom(k * SEC, drive.odometry(i))))
+        messages.append(('points', make_cloud(drive.scan(i).points, k * SEC)))
+    h.replay(messages)
+    assert [(int(c['query_index']), int(c['match_index'])) for c in h.candidates] == [(4, 0)]
+    h.wait_for(lambda: bool(lio), 'the LIO-SAM loop message')
+    assert list(lio[-1].data) == [4.0, 0.0]
+    # map -> odom moved by the loop: the drift at the revisit, taken out.
+    h.wait_for(lambda: bool(tf) and any(
+        abs(t.transform.translation.x) + abs(t.transform.translation.y) > 0.5
+        for t in tf[-1].transforms), 'a moved map -> odom transform')
+    link = tf[-1].transforms[0]
+    assert (link.header.frame_id, link.child_frame_id) == ('map', 'odom')
+    # The latched path holds the five keyframes; the revisit lies near its reference.
+    h.wait_for(lambda: bool(paths) and len(paths[-1].poses) == 5, 'the corrected path')
+    last = _pose(paths[-1].poses[-1].pose)
+    drift = np.linalg.norm(drive.odometry(273)[:3, 3] - drive.pose(273)[:3, 3])
+    error = np.linalg.norm(last[:3, 3] - drive.pose(273)[:3, 3])
+    assert drift > 2.0 and error < 0.5 * drift
+    # A new odometry message comes out in the map frame, corrected.
+    h.pub_odom.publish(_odom(5 * SEC, drive.odometry(273)))
+    h.wait_for(lambda: bool(corrected) and corrected[-1].header.stamp.sec == 5, 'odometry')
+    out = corrected[-1]
+    assert out.header.frame_id == 'map' and out.child_frame_id == 'lidar'
+    assert np.linalg.norm(_pose(out.pose.pose)[:3, 3] - last[:3, 3]) < 1e-3
+    assert out.pose.covariance[0] > 0.0
+    h.wait_for(lambda: bool(maps) and maps[-1].width > 1000, 'the map')
+    assert maps[-1].header.frame_id == 'map' and np.isfinite(cloud_to_xyz(maps[-1])).all()
+    h.wait_for(lambda: h.status().get('backend_loops') == '1', 'the loop on /diagnostics')
+
+
+def test_save_services_write_their_files_and_replace_only_their_own(backend_node: Harness,
+                                                                     tmp_path: Path) -> None:
+    h = backend_node
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
+    h.replay([m for k, i in enumerate(DRIVE[:3]) for m in (
+        ('odom', _odom(k * SEC, drive.odometry(i))),
+        ('points', make_cloud(drive.scan(i).points, k * SEC)))])
+    out = tmp_path / 'out'
+    res = h.call('/solid_node/save_trajectory')
+    assert res.success, res.message
+    stamps, poses = read_tum_poses(out / 'trajectory.tum')
+    assert stamps.tolist() == [0, SEC, 2 * SEC]
+    assert len(read_kitti_poses(out / 'trajectory.kitti')) == 3
+    np.testing.assert_allclose(poses[1][:3, 3], drive.odometry(40)[:3, 3], atol=1e-3)
+    res = h.call('/solid_node/save_map')
+    assert res.success, res.message
+    assert len(read_pcd(out / 'map.pcd')) > 1000
+    # Saving again replaces its own files; a file that is not a map is never replaced.
+    assert h.call('/solid_node/save_map').success
+    (out / 'map.pcd').write_text('my notes, not a point cloud\n')
+    res = h.call('/solid_node/save_map')
+    assert not res.success and 'not replaced' in res.message
+    assert (out / 'map.pcd').read_text() == 'my notes, not a point cloud\n'
+    (out / 'trajectory.tum').unlink()
+    (out / 'trajectory.tum').symlink_to(tmp_path / 'elsewhere.txt')
+    res = h.call('/solid_node/save_trajectory')
+    assert not res.success and 'not a regular file' in res.message
+    assert not (tmp_path / 'elsewhere.txt').exists()
+
+
+def test_kiss_icp_odometry_gates_keyframes_and_closes_the_revisit(
+        harness: Callable[..., Harness], hku1: list[tuple[str, Any]]) -> None:
+    pytest.importorskip('kiss_icp', reason='kiss-icp is not installed')
+    h = harness([Parameter('odometry_source', value='kiss_icp')], params_file=AVIA)
+    odometry = _listen(h, Odometry, '/solid_node/kiss/odometry', 1000)
+    tf = _listen(h, TFMessage, '/tf', 1000)
+    clouds = [(kind, m) for kind, m in hku1 if kind == 'points']  # the clouds alone
+    h.replay(clouds)
+    processed = h.node.stats.processed
+    assert processed == len(clouds) and h.node.stats.without_odom == 0
+    h.wait_for(lambda: len(odometry) == processed, 'an odometry message per cloud')
+    assert odometry[0].header.frame_id == 'odom' and odometry[0].child_frame_id
+    # The sensor walked a 63.5 m loop: KISS-ICP's odometry went with it.
+    xy = np.array([[m.pose.pose.position.x, m.pose.pose.position.y] for m in odometry])
+    assert 50.0 < np.linalg.norm(np.diff(xy, axis=0), axis=1).sum() < 80.0
+    assert any(t.header.frame_id == 'odom' for msg in tf for t in msg.transforms)
+    h.wait_for(lambda: 'database_size' in h.status()
+               and h.status()['clouds_processed'] == str(processed), 'diagnostics')
+    status = h.status()
+    assert int(status['database_size']) < processed  # keyframes gated by the odometry
+    assert status['kiss_resets'] == '0'
+    got = [key(c) for c in h.candidates]
+    assert revisits(got, hku1), got  # the end-of-run revisit, verified
+    assert all(c['verified'] == 1 for c in h.candidates)
