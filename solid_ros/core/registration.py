@@ -18,6 +18,7 @@ without recomputing its normals.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -298,7 +299,8 @@ class Alignment:
         iterations: iterations run.
         coarse_overlap: (coarse stage) fraction of the candidate's coarse structure points
             within half a coarse voxel of the query's after alignment; NaN for fine results.
-        hypothesis: index of the heading hypothesis that won (coarse stage), else -1.
+        hypothesis: index of the start that won (coarse stage: the guesses first, then the
+            heading hypotheses), else -1.
     """
 
     T_qm: FloatArray
@@ -309,30 +311,37 @@ class Alignment:
 
 
 def align_coarse(query: Query, source: Source, yaws: list[float],
-                 settings: RegistrationSettings) -> Alignment | None:
-    """Register the structure of ``source`` to the query from each heading hypothesis.
+                 settings: RegistrationSettings,
+                 guesses: Sequence[FloatArray] = ()) -> Alignment | None:
+    """Register the structure of ``source`` to the query from each start.
 
-    Hypotheses are tried in order; once one reaches a coarse overlap of ``_GOOD_COARSE`` the
-    rest are skipped (the A-SOLiD's first guess is usually right).
+    The starts are the ``guesses`` (full poses, e.g. the pose graph's), then the heading
+    hypotheses (rotations about z, no translation). They are tried in order; once one reaches
+    a coarse overlap of ``_GOOD_COARSE`` the rest are skipped (the first start is usually
+    right).
 
     Args:
         query: the prepared query.
         source: the prepared candidate.
         yaws: heading hypotheses in the detector's convention (``p_match = Rz(yaw) p_query``).
         settings: registration settings.
+        guesses: 4x4 ``T_mq`` (``p_match = T_mq p_query``) to start from before the yaws.
 
     Returns:
-        The hypothesis with the largest coarse overlap; None when either cloud has too little
-        structure to register.
+        The start with the largest coarse overlap (``hypothesis`` is its index: guesses
+        first); None when either cloud has too little structure to register.
     """
-    if query.coarse.size() < _MIN_POINTS or source.coarse.size() < _MIN_POINTS or not yaws:
+    starts = [np.linalg.inv(np.asarray(g, dtype=np.float64)) for g in guesses]
+    for yaw in yaws:
+        init = np.eye(4)
+        init[:3, :3] = rot_z(-yaw)  # T_qm = inverse of the hypothesis Rz(yaw)
+        starts.append(init)
+    if query.coarse.size() < _MIN_POINTS or source.coarse.size() < _MIN_POINTS or not starts:
         return None
     sg = load_small_gicp()
     best: Alignment | None = None
     src_pts = source.coarse.points()[:, :3]
-    for k, yaw in enumerate(yaws):
-        init = np.eye(4)
-        init[:3, :3] = rot_z(-yaw)  # T_qm = inverse of the hypothesis Rz(yaw)
+    for k, init in enumerate(starts):
         res = sg.align(query.coarse, source.coarse, query.coarse_tree, init,
                        registration_type='GICP',
                        max_correspondence_distance=settings.coarse_distance,

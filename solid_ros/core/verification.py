@@ -8,11 +8,13 @@ rejection ``reason``):
 2. ``too_sparse``: either cloud has fewer than 10 points, or fewer than 10 structure points
    after the coarse voxel grid.
 3. ``coarse_overlap``: the coarse stage registers the candidate's structure points (see
-   :mod:`solid_ros.core.registration`) from each heading hypothesis (the best A-SOLiD shifts)
-   and keeps the best; fewer than ``verify_min_coarse_overlap`` of its coarse structure points
-   land within half a coarse voxel of the query's. This is the cheap screen most false
-   candidates stop at. A candidate with more than ``verify_coarse_max_points`` coarse points
-   is registered with an even subsample of that many (the cost grows with them).
+   :mod:`solid_ros.core.registration`) from the pose graph's relative pose when there is one
+   (:mod:`solid_ros.core.proposals`), then from each heading hypothesis (the best A-SOLiD
+   shifts), and keeps the best; fewer than ``verify_min_coarse_overlap`` of its coarse
+   structure points land within half a coarse voxel of the query's. This is the cheap screen
+   most false candidates stop at. A candidate with more than ``verify_coarse_max_points``
+   coarse points is registered with an even subsample of that many (the cost grows with
+   them).
 4. ``not_converged``: the fine stage (voxelised GICP on all points) did not converge within
    ``verify_max_iterations``, and its pose did not stand still when resumed (a stationary
    pose counts as converged; see :func:`solid_ros.core.registration.align_fine`).
@@ -69,7 +71,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Hashable
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,7 +130,8 @@ class Verification:
         drift_m: largest translation between the solution and the restarts, metres.
         drift_deg: largest rotation between the solution and the restarts, degrees.
         covariance: 6x6 in ROS order (x, y, z, roll, pitch, yaw); NaN when not verified.
-        hypothesis: index of the heading hypothesis the coarse stage kept (-1: none).
+        hypothesis: index of the start the coarse stage kept: the guesses first, then the
+            heading hypotheses (-1: none).
     """
 
     verified: bool
@@ -213,8 +216,10 @@ class Verifier:
         self._cache.clear()
 
     def coarse(self, query: Query, key: Hashable, cloud: KeyframeCloud | None,
-               yaws: list[float]) -> CoarseResult:
-        """Coarse stage of one candidate (tests 1-3)."""
+               yaws: list[float], guesses: Sequence[FloatArray] = ()) -> CoarseResult:
+        """Coarse stage of one candidate (tests 1-3), started from each of ``guesses``
+        (4x4 ``T_mq`` in the levelled frames, e.g. the pose graph's) and then each heading
+        hypothesis of ``yaws``."""
         if cloud is None:
             return CoarseResult(key, None, None, _rejected('no_cloud'))
         if not query.usable:
@@ -222,7 +227,7 @@ class Verifier:
         src = self._source(key, cloud)
         if not src.usable:
             return CoarseResult(key, None, None, _rejected('too_sparse'))
-        al = align_coarse(query, src, yaws, self.settings)
+        al = align_coarse(query, src, yaws, self.settings, guesses)
         if al is None:
             return CoarseResult(key, None, None, _rejected('too_sparse'))
         if not al.coarse_overlap >= self._config.verify_min_coarse_overlap:

@@ -118,6 +118,32 @@ def test_wrong_heading_hypothesis_is_recovered_by_the_next() -> None:
     assert res.verified and res.hypothesis == 1  # type: ignore[attr-defined]
 
 
+def _perturbed(T: FloatArray, dx: float, dyaw_deg: float) -> FloatArray:
+    d = np.eye(4)
+    d[:3, :3] = rpy_matrix(0.0, 0.0, math.radians(dyaw_deg))
+    d[0, 3] = d[1, 3] = dx
+    out: FloatArray = T @ d
+    return out
+
+
+def test_a_pose_graph_guess_seeds_the_coarse_stage() -> None:
+    # Heading hypotheses half a turn off do not find the revisit; the pose graph's relative
+    # pose, 1.4 m and 8 deg off the truth, does, tried first (hypothesis 0).
+    ref = _truth(273, 5)
+    wrong = math.atan2(ref[1, 0], ref[0, 0]) + math.pi
+    v = Verifier(CFG)
+    query = v.prepare(_cloud(_scan(273)[0]))
+    match = v.prepare(_cloud(_scan(5)[0])).keyframe_cloud()
+    assert not v.fine(query, v.coarse(query, 'm', match, [wrong])).verified
+    res = v.fine(query, v.coarse(query, 'm', match, [wrong], [_perturbed(ref, 1.0, 8.0)]))
+    assert res.verified and res.hypothesis == 0
+    t_err, r_err = _errors(res.T, ref)
+    assert t_err < 0.1 and r_err < 0.3
+    # A guess alone (no heading hypotheses) is enough.
+    res = v.fine(query, v.coarse(query, 'm', match, [], [_perturbed(ref, -1.0, -8.0)]))
+    assert res.verified and _errors(res.T, ref)[0] < 0.1
+
+
 def test_a_dense_candidate_is_thinned_evenly_for_the_coarse_stage_and_still_verified() -> None:
     cfg = CFG.replace(verify_coarse_max_points=80)
     cloud = Verifier(CFG).prepare(_cloud(_scan(5)[0])).keyframe_cloud()
@@ -332,6 +358,13 @@ def test_lookalike_street_through_a_90_degree_clip_is_refused(q: int, m: int) ->
     assert not res.verified
     assert _pose_errors(drive, q, m, res.T)[0] > 50.0  # the alignment found is a false one
     assert res.conflict > 1.5 * cfg.verify_max_conflict, res
+    # A pose graph that drifted so far that it puts the two places on top of each other
+    # (its guess is that false alignment, or one 1 m and 5 deg beside it) seeds the coarse
+    # stage there: the tests still refuse it.
+    v.reconfigure(cfg)
+    for guess in (res.T, _perturbed(res.T, 1.0, 5.0)):
+        again = v.fine(query, v.coarse(query, 'm', match, yaws, [guess]))
+        assert not again.verified, again
 
 
 def _published(sensor: str, preset: str, route: str, scene: str,
@@ -387,7 +420,8 @@ def _room_scan(index: int) -> tuple[npt.NDArray[np.float32], FloatArray]:
     return cloud[:, :3], pose_matrix(x, y, model.mount_height, yaw)
 
 
-def _verify_room_pair(q: int, m: int) -> tuple[Any, float, float]:
+def _verify_room_pair(q: int, m: int, guesses: tuple[FloatArray, ...] = ()
+                      ) -> tuple[Any, float, float]:
     cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
     (sq, pq), (sm, pm) = _room_scan(q), _room_scan(m)
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
@@ -395,7 +429,7 @@ def _verify_room_pair(q: int, m: int) -> tuple[Any, float, float]:
     det, v = LoopDetector(cfg), Verifier(cfg)
     query = v.prepare(det._keyframe_points(sq))
     match = v.prepare(det._keyframe_points(sm)).keyframe_cloud()
-    res = v.fine(query, v.coarse(query, 'm', match, yaws))
+    res = v.fine(query, v.coarse(query, 'm', match, yaws, guesses))
     return (res, *_errors(res.T, np.linalg.inv(pm) @ pq))
 
 
@@ -428,6 +462,10 @@ def test_wrong_room_alignments_are_still_refused(q: int, m: int) -> None:
     res, t_err, r_err = _verify_room_pair(q, m)
     assert not res.verified and res.reason == 'conflict', res
     assert r_err > 45.0
+    # Seeded there by a pose graph's guess (the room is where the graph would propose its
+    # nearest keyframes), the turned alignment is refused all the same.
+    again, _, r_again = _verify_room_pair(q, m, (res.T,))
+    assert not again.verified and r_again > 45.0, again
 
 
 def test_free_space_conflict_counts_seen_through_points_unless_explained() -> None:
