@@ -7,6 +7,12 @@ consume alike. The node runs the same work on two threads: the detector's
 :meth:`~solid_ros.core.detector.LoopDetector.propose` on one, then :meth:`LoopClosure.finish`
 (verification and the back end) on the other.
 
+With the back end and ``graph_candidates`` on, each keyframe is verified with the graph as it
+stood after the previous keyframe (a :class:`~solid_ros.core.proposals.GraphHint`): the
+keyframes near it in the corrected estimate become candidates too, and the graph's relative
+poses seed their registration. The node hands the verify thread the same hint from its graph
+snapshot, taken after the previous keyframe on that thread, so both verify alike.
+
 A saved database loaded with :meth:`LoopClosure.load` brings its scans (searched and verified
 against) and, with the back end on, its keyframes' map-frame poses as the fixed prior map the
 session relocalises in.
@@ -24,6 +30,7 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import LoopDetector, Proposal, ScanResult
 from solid_ros.core.odometry import OdometrySource, OdomSample
+from solid_ros.core.proposals import GraphHint
 
 if TYPE_CHECKING:
     from solid_ros.core.graphtypes import BackendState
@@ -72,6 +79,7 @@ class LoopClosure:
 
             graph = PoseGraph(detector.config)
         self.graph = graph
+        self._hint: GraphHint | None = None
 
     @classmethod
     def load(cls, path: str | Path, config: SolidConfig,
@@ -111,19 +119,29 @@ class LoopClosure:
         """
         if odom is None and self.odometry is not None:
             odom = self.odometry.pose_for(stamp_ns, np.asarray(points))
-        scan = self.detector.process(points, stamp_ns, None if odom is None else odom.pose)
+        scan = self.detector.process(points, stamp_ns, None if odom is None else odom.pose,
+                                     self._hint)
         return Step(scan, odom, self._update(scan, odom))
 
     def finish(self, proposal: Proposal, odom: OdomSample | None) -> Step:
         """The second half of :meth:`process` for a proposal of the detector's
         :meth:`~LoopDetector.propose`: verify it and update the pose graph (keyframe order)."""
-        scan = self.detector.verify(proposal)
+        scan = self.detector.verify(proposal, self._hint)
         return Step(scan, odom, self._update(scan, odom))
+
+    @property
+    def hint(self) -> GraphHint | None:
+        """The graph's estimate the next keyframe is verified with (None: none)."""
+        return self._hint
 
     def _update(self, scan: ScanResult, odom: OdomSample | None) -> BackendState | None:
         if self.graph is None or not scan.keyframe:
             return None
-        return self.graph.update(scan, odom)
+        state = self.graph.update(scan, odom)
+        if state.added and self.config.graph_candidates > 0 and self.config.verify:
+            self._hint = GraphHint.from_keyframes(self.graph.keyframes(), state.correction,
+                                                  state.covariance)
+        return state
 
     def map_poses(self) -> dict[tuple[int, int], FloatArray]:
         """Map-frame poses of every keyframe the graph holds (this session and a loaded map),
@@ -137,5 +155,6 @@ class LoopClosure:
     def reset(self) -> None:
         """Forget this session's scans and keyframes (a loaded map stays in the graph)."""
         self.detector.reset()
+        self._hint = None
         if self.graph is not None:
             self.graph.reset()

@@ -299,6 +299,21 @@ class SolidConfig(_Schema):
     odom_check_slack_m: float = _p(10.0, 'Odometry check: disagreement always allowed, metres '
                                    '(sensor offset from the odometry frame, descriptor-only '
                                    'loops)', low=0.0, high=1e6)
+    graph_candidates: int = _p(3, 'Besides the descriptor candidates, verify up to this many '
+                               'earlier keyframes of this session lying near the query in the '
+                               "back end's corrected estimate, nearest first (needs verify and "
+                               'the back end with odometry; 0 = off)', low=0, high=100)
+    graph_candidate_radius_m: float = _p(5.0, 'Graph candidates: search radius around the '
+                                         "query's predicted pose when the back end is certain "
+                                         'of it (the floor), metres', low=0.0, high=1000.0)
+    graph_candidate_sigmas: float = _p(3.0, 'Graph candidates: the radius grows by this many '
+                                       "standard deviations of the newest pose's marginal "
+                                       'position covariance', low=0.0, high=100.0)
+    graph_candidate_max_radius_m: float = _p(15.0, 'Graph candidates: largest search radius '
+                                             '(the cap), metres', low=0.0, high=10000.0)
+    graph_candidate_min_path_m: float = _p(10.0, 'Graph candidates: least odometry path driven '
+                                           'between a candidate and the query, metres (besides '
+                                           'exclude_recent_frames / _sec)', low=0.0, high=1e6)
     cloud_capacity: int = _p(20000, 'Keyframe clouds kept for verification; the oldest cloud is '
                              'dropped beyond this (its scan stays, unverifiable)', low=0,
                              high=10_000_000, read_only=True)

@@ -21,6 +21,15 @@ the distance of the nearest scan outside its ``margin_neighbourhood`` minus its 
 (``math.inf`` when there is none); the search fetches ``num_candidates + 2 *
 margin_neighbourhood + 1`` scans so that this next-best distinct place is always among them.
 
+Candidates by position (:mod:`solid_ros.core.proposals`): given the pose graph's estimate
+(a :class:`~solid_ros.core.proposals.GraphHint`, from :class:`~solid_ros.core.closure.LoopClosure`
+or the node's graph snapshot) with ``verify`` and ``graph_candidates`` on, :meth:`verify` adds
+the earlier keyframes of this session near the query in the corrected estimate (source
+``'graph'``), and every candidate the graph knows is registered from the graph's relative pose
+first. Those near keyframes (the graph's, and the descriptor's among them) are verified first;
+the descriptor's other candidates only when they leave fewer than ``max_candidates`` places
+verified. Without a hint nothing changes.
+
 Acceptance with ``verify`` (see :mod:`solid_ros.core.verification`): every candidate goes
 through the coarse registration; those that pass are verified in order of coarse overlap,
 best first, until ``max_candidates`` distinct places (outside each other's
@@ -49,7 +58,7 @@ from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -67,14 +76,16 @@ from solid_ros.core.geometry import (
     vector_to_matrix,
 )
 from solid_ros.core.keyframes import CloudStore, KeyframeCloud
-from solid_ros.core.matching import estimate_yaw, heading_hypotheses
+from solid_ros.core.matching import cosine_distance, estimate_yaw, heading_hypotheses
 from solid_ros.core.odometry import OdometryPath, disagreement
+from solid_ros.core.proposals import GraphHint, near_keyframes
 from solid_ros.core.reasons import Reason
+from solid_ros.core.registration import Query
 from solid_ros.core.stamps import check_stamp
 from solid_ros.core.verification import Verification, Verifier
 
 __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
-           'StageTimes']
+           'Source', 'StageTimes']
 
 FloatArray = npt.NDArray[np.float64]
 _NAN_COV: tuple[float, ...] = (math.nan,) * 36
@@ -82,6 +93,11 @@ _NAN_COV: tuple[float, ...] = (math.nan,) * 36
 # there is none.
 CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | Reason']
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+Source = Literal['descriptor', 'graph']  # what proposed a candidate
+# The graph's candidates are registered from its pose alone: the A-SOLiD hypotheses are the
+# descriptor's guess of a heading it matched, and add little where the graph placed a
+# keyframe (hku1: the same loops, a cheaper verification).
+_GRAPH_GUESS_ONLY = True
 
 @dataclass(frozen=True)
 class LoopCandidate:
@@ -115,6 +131,9 @@ class LoopCandidate:
         conflict: free-space conflict of the alignment (NaN: not measured).
         constraint: horizontal constraint per structure point (NaN: not measured).
         spread: the constraint without the strongest object (NaN: not measured).
+        source: what proposed it: ``'descriptor'`` (the descriptor's nearest places) or
+            ``'graph'`` (a keyframe near the query in the back end's estimate, see
+            :mod:`solid_ros.core.proposals`; its ``margin`` is NaN).
     """
 
     query_index: int
@@ -135,6 +154,7 @@ class LoopCandidate:
     conflict: float = math.nan
     constraint: float = math.nan
     spread: float = math.nan
+    source: Source = 'descriptor'
 
     def to_dict(self) -> dict[str, Any]:
         """Return the fields as a plain dict."""
@@ -147,11 +167,17 @@ class LoopCandidate:
 
 @dataclass(frozen=True)
 class _Hit:
-    """A descriptor candidate handed from :meth:`LoopDetector.propose` to ``verify``."""
+    """A candidate to verify: the descriptor's (from :meth:`LoopDetector.propose`) or the
+    pose graph's (added by ``verify``); ``guess`` is the graph's ``T_mq`` in the levelled
+    frames, the first start of the coarse registration (None: the graph has none); ``near``:
+    among the keyframes near the query in the graph's estimate (verified first)."""
 
     match: Match
     margin: float
     heading: npt.NDArray[np.float32]
+    source: Source = 'descriptor'
+    guess: FloatArray | None = None
+    near: bool = False
 
 
 @dataclass(frozen=True)
@@ -257,6 +283,9 @@ class LoopDetector:
         self._kf_pose: FloatArray | None = None
         self._last_loop_query: int | None = None
         self._path = OdometryPath(cfg.capacity)  # path driven up to each own keyframe
+        # Database sequence number of each own keyframe, by index: written by propose, read
+        # by verify (on another thread in the node, where the database's own map may move).
+        self._own_seqs: dict[int, int] = {}
         # Where clouds of other robots' keyframes come from (the node asks the owner); it
         # returns the cloud or the reason there is none. None: such candidates stay unverified.
         self.fetch_cloud: CloudFetcher | None = None
@@ -322,7 +351,8 @@ class LoopDetector:
 
     # ------------------------------------------------------------------------------ per scan
 
-    def process(self, points: npt.ArrayLike, stamp_ns: int, pose: Any = None) -> ScanResult:
+    def process(self, points: npt.ArrayLike, stamp_ns: int, pose: Any = None,
+                hint: GraphHint | None = None) -> ScanResult:
         """Handle one scan: gate, describe, query, store, verify.
 
         Args:
@@ -330,6 +360,7 @@ class LoopDetector:
             stamp_ns: scan stamp, integer nanoseconds.
             pose: optional sensor pose (see :func:`pose_to_vector`), used for keyframe gating
                 and stored with the scan.
+            hint: the pose graph's estimate, for candidates by position (see :meth:`verify`).
 
         Returns:
             The scan's result; ``loops`` are the loops to publish, best first (empty for a
@@ -343,7 +374,7 @@ class LoopDetector:
         if proposal is None:
             vec = pose_to_vector(pose) if pose is not None else None
             return ScanResult(check_stamp(stamp_ns), pose=vec)
-        return self.verify(proposal)
+        return self.verify(proposal, hint)
 
     def propose(self, points: npt.ArrayLike, stamp_ns: int,
                 pose: Any = None) -> Proposal | None:
@@ -455,19 +486,31 @@ class LoopDetector:
             chosen.append(_Hit(hit, margin, db.heading(hit.seq).copy()))
         seq = db.next_seq
         db.add(desc.r_solid, desc.heading, stamp, vec)
+        self._own_seqs[q_index] = seq
+        while len(self._own_seqs) > cfg.capacity:
+            del self._own_seqs[next(iter(self._own_seqs))]
         self._path.add(q_index, vec)
         self._kf_stamp, self._kf_pose = stamp, vec
         return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
                         np.asarray(desc.r_solid, dtype=np.float64), vec, chosen, best)
 
-    def verify(self, proposal: Proposal) -> ScanResult:
+    def verify(self, proposal: Proposal, hint: GraphHint | None = None) -> ScanResult:
         """Verification stage for one :meth:`propose` result; call in keyframe order.
 
         Stores the keyframe's cloud, verifies the candidates and applies ``max_candidates``
         and ``min_loop_gap``; the result's ``attempts`` lists every candidate looked at.
+
+        With a ``hint`` (the pose graph after the previous keyframe), ``graph_candidates`` on,
+        verification on and an odometry pose for the keyframe, the keyframes near it in the
+        graph's estimate join the descriptor's candidates (:mod:`solid_ros.core.proposals`;
+        appended to ``proposal.hits``, source ``'graph'``), and every candidate the graph
+        places within ``graph_candidate_max_radius_m`` is registered from the graph's
+        relative pose first. They pass the same tests.
         """
         t0 = time.perf_counter()
         cfg = self._config
+        if hint is not None:
+            proposal.hits = self._with_graph_hits(proposal, hint)
         gap_blocked = bool(cfg.min_loop_gap and self._last_loop_query is not None
                            and proposal.query_index - self._last_loop_query < cfg.min_loop_gap)
         if self.verifier is None:
@@ -493,6 +536,37 @@ class LoopDetector:
                           tuple(taken), tuple(attempts), proposal.best, times,
                           proposal.descriptor)
 
+    def _with_graph_hits(self, proposal: Proposal, hint: GraphHint) -> list[_Hit]:
+        """The proposal's hits with the graph's guesses, then the keyframes near the query
+        that the descriptor did not propose (see :meth:`verify`)."""
+        cfg, db = self._config, self.database
+        if (cfg.graph_candidates <= 0 or self.verifier is None or proposal.pose is None
+                or proposal.cloud_points is None):
+            return proposal.hits
+        odom = vector_to_matrix(proposal.pose)
+        near = near_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, cfg)
+        close = {c.index for c in near}
+        predicted = hint.predict(odom)
+        hits = []
+        for h in proposal.hits:
+            pose_m = hint.pose_of(h.match.index) if h.match.session == cfg.session_id else None
+            if pose_m is not None:
+                T = np.asarray(np.linalg.solve(pose_m, predicted), dtype=np.float64)
+                if np.linalg.norm(T[:3, 3]) <= cfg.graph_candidate_max_radius_m:
+                    h = replace(h, guess=self._level_pose(T), near=h.match.index in close)
+            hits.append(h)
+        own = {h.match.index for h in hits if h.match.session == cfg.session_id}
+        for c in near:
+            seq = self._own_seqs.get(c.index)
+            if c.index in own or seq is None or not db.is_stored(seq):
+                continue
+            distance = math.nan if proposal.r_solid is None else cosine_distance(
+                proposal.r_solid, db.r_solid(seq))
+            match = Match(seq, c.index, cfg.session_id, c.stamp_ns, distance)
+            hits.append(_Hit(match, math.nan, db.heading(seq).copy(), 'graph',
+                             self._level_pose(c.T_mq), True))
+        return hits
+
     def _candidate(self, proposal: Proposal, hit: _Hit, yaw: float,
                    result: Verification | None) -> LoopCandidate:
         m = hit.match
@@ -501,7 +575,7 @@ class LoopDetector:
             T[:3, :3] = rot_z(yaw)
             return LoopCandidate(proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns,
                                  m.session, m.distance, yaw, hit.margin,
-                                 pose=self._unlevel_pose(T))
+                                 pose=self._unlevel_pose(T), source=hit.source)
         cov: tuple[float, ...] = _NAN_COV
         if result.covariance is not None:
             cov = tuple(float(v) for v in self._unlevel_cov(result.covariance).ravel())
@@ -510,7 +584,8 @@ class LoopDetector:
             m.distance, result.yaw if result.verified else yaw, hit.margin,
             verified=result.verified, pose=self._unlevel_pose(result.T), fitness=result.fitness,
             rmse=result.rmse, covariance=cov, reason=result.reason, overlap=result.overlap,
-            conflict=result.conflict, constraint=result.constraint, spread=result.spread)
+            conflict=result.conflict, constraint=result.constraint, spread=result.spread,
+            source=hit.source)
 
     def _odometry_refuses(self, proposal: Proposal, match: Match, T_mq: FloatArray) -> bool:
         """Whether this session's odometry contradicts the loop ``T_mq`` (sensor frames, not
@@ -541,9 +616,39 @@ class LoopDetector:
                                 gap_blocked: bool) -> list[LoopCandidate]:
         verifier = self.verifier
         assert verifier is not None
+        clouds, fetched = self._candidate_clouds(proposal, gap_blocked)
+        query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
+                                 else np.zeros((0, 3)))
+        if query.usable:
+            self.clouds.put(proposal.seq, query.keyframe_cloud())
+        self.clouds.drop_before(self.database.oldest_seq)
+        results: dict[int, Verification] = dict(fetched)
+        yaws: dict[int, float] = {}
+        verified: list[Match] = []
+        # The graph's near keyframes first: registered from its pose they mostly verify at
+        # once, and the rest are then not needed (max_candidates).
+        hits = proposal.hits
+        for group in ([i for i, h in enumerate(hits) if h.near],
+                      [i for i, h in enumerate(hits) if not h.near]):
+            if gap_blocked or len(verified) >= self._config.max_candidates:
+                break
+            self._register(proposal, query, group, clouds, results, yaws, verified)
+        out = []
+        for i, hit in enumerate(hits):
+            res = results.get(i)
+            if res is not None:
+                self.reasons[res.reason] += 1
+                out.append(self._candidate(proposal, hit, yaws.get(i, 0.0), res))
+        out.sort(key=lambda c: (not c.verified, -_nan_to(c.overlap, -1.0)))
+        return out
+
+    def _candidate_clouds(self, proposal: Proposal, gap_blocked: bool
+                          ) -> tuple[list[KeyframeCloud | None], dict[int, Verification]]:
+        """Each hit's stored cloud (a peer's fetched when needed), and the verdicts of peer
+        clouds that did not come."""
         cfg = self._config
         clouds: list[KeyframeCloud | None] = []
-        fetched: dict[int, Reason] = {}
+        fetched: dict[int, Verification] = {}
         for i, h in enumerate(proposal.hits):
             cloud = self.clouds.get(h.match.seq)
             if (cloud is None and self.fetch_cloud is not None and not gap_blocked
@@ -554,35 +659,36 @@ class LoopDetector:
                     self.clouds.put(h.match.seq, got)
                     cloud = got
                 else:
-                    fetched[i] = got
+                    fetched[i] = Verification(False, got, np.eye(4))
             clouds.append(cloud)
         if proposal.cloud_points is None:  # process_descriptor: nothing to register
             clouds = [None] * len(clouds)
-        query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
-                                 else np.zeros((0, 3)))
-        if query.usable:
-            self.clouds.put(proposal.seq, query.keyframe_cloud())
-        self.clouds.drop_before(self.database.oldest_seq)
-        results: dict[int, Verification] = {}
-        yaws: dict[int, float] = {}
+        return clouds, fetched
+
+    def _register(self, proposal: Proposal, query: Query, group: list[int],
+                  clouds: list[KeyframeCloud | None], results: dict[int, Verification],
+                  yaws: dict[int, float], verified: list[Match]) -> None:
+        """Coarse stage of the hits ``group``, then the fine stage in order of coarse overlap
+        until ``max_candidates`` distinct places are verified (``verified`` grows)."""
+        verifier = self.verifier
+        assert verifier is not None
+        cfg = self._config
         coarse = []
-        for i, (hit, cloud) in enumerate(zip(proposal.hits, clouds)):
+        for i in group:
+            hit = proposal.hits[i]
             hyps = heading_hypotheses(proposal.heading, hit.heading, cfg.verify_hypotheses,
                                       cfg.heading_match)
             yaws[i] = hyps[0][0] if hyps else 0.0
-            if gap_blocked:
+            if i in results:  # a peer's cloud that did not come
                 continue
-            if i in fetched:  # a peer's cloud that did not come
-                results[i] = Verification(False, fetched[i], np.eye(4))
-                continue
-            key = (hit.match.session, hit.match.seq)
-            c = verifier.coarse(query, key, cloud, [y for y, _ in hyps])
+            starts = [] if hit.source == 'graph' and _GRAPH_GUESS_ONLY else [y for y, _ in hyps]
+            c = verifier.coarse(query, (hit.match.session, hit.match.seq), clouds[i], starts,
+                                () if hit.guess is None else (hit.guess,))
             if c.rejection is not None:
                 results[i] = c.rejection
             else:
                 coarse.append((i, c))
         coarse.sort(key=lambda ic: -ic[1].coarse_overlap)
-        verified: list[Match] = []
         for i, c in coarse:
             hit = proposal.hits[i]
             if len(verified) >= cfg.max_candidates:
@@ -596,14 +702,6 @@ class LoopDetector:
             results[i] = fine
             if fine.verified:
                 verified.append(hit.match)
-        out = []
-        for i, hit in enumerate(proposal.hits):
-            res = results.get(i)
-            if res is not None:
-                self.reasons[res.reason] += 1
-                out.append(self._candidate(proposal, hit, yaws[i], res))
-        out.sort(key=lambda c: (not c.verified, -_nan_to(c.overlap, -1.0)))
-        return out
 
     def _loaded_sessions(self) -> set[int]:
         """Sessions loaded from a database file (their clouds came with it or not at all)."""
@@ -616,6 +714,15 @@ class LoopDetector:
         m = np.eye(4)
         m[:3, :3] = self._mount
         out: FloatArray = m.T @ T @ m
+        return out
+
+    def _level_pose(self, T: FloatArray) -> FloatArray:
+        """A pose between the sensor frames, expressed between the levelled frames."""
+        if not self._levelled:
+            return T
+        m = np.eye(4)
+        m[:3, :3] = self._mount
+        out: FloatArray = m @ T @ m.T
         return out
 
     def _unlevel_pose(self, T: FloatArray) -> tuple[float, ...]:
@@ -681,6 +788,7 @@ class LoopDetector:
         self._kf_stamp = self._kf_pose = None
         self._last_loop_query = None
         self._path.clear()
+        self._own_seqs.clear()
 
     def save(self, path: str | Path,
              map_poses: Mapping[tuple[int, int], Any] | None = None) -> Path:

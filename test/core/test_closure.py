@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from solid_ros.core.closure import LoopClosure
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopDetector
+from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.geometry import rot_z
 from solid_ros.core.odometry import OdomSample, StampedOdometry
 from solid_ros.sim.drive import Drive, DriveConfig
@@ -71,3 +72,58 @@ def test_save_load_relocalises_in_the_saved_map(tmp_path: Path) -> None:
     assert step.backend.pose is not None
     err = np.linalg.norm(step.backend.pose[:3, 3] - drive.pose(273)[:3, 3])
     assert err < 0.3  # in the saved map's frame, not the session's odometry frame
+
+
+def _revisit(closure: LoopClosure, drive: Drive) -> list[LoopCandidate]:
+    """Run DRIVE through ``closure`` with the drive's drifting odometry; the last scan's
+    loops."""
+    step = None
+    for k, i in enumerate(DRIVE):
+        step = closure.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC,
+                                                                          drive.odometry(i)))
+    assert step is not None
+    return list(step.scan.loops)
+
+
+def test_the_graph_proposes_a_revisit_the_descriptor_missed() -> None:
+    drive = _drive()
+    blind = CFG.replace(distance_threshold=0.0)  # the descriptor proposes nothing
+    assert _revisit(LoopClosure(LoopDetector(blind.replace(graph_candidates=0))), drive) == []
+    closure = LoopClosure(LoopDetector(blind.replace(graph_candidates=3)))
+    (loop,) = _revisit(closure, drive)
+    assert (loop.query_index, loop.match_index, loop.source) == (4, 0, 'graph')
+    assert loop.verified and math.isnan(loop.margin)
+    ref = np.linalg.solve(drive.pose(5), drive.pose(273))
+    assert np.linalg.norm(loop.matrix()[:3, 3] - ref[:3, 3]) < 0.2
+    # The graph's hint was of the four keyframes before; the loop went into the graph.
+    assert closure.graph is not None and len(closure.graph.loops) == 1
+    hint = closure.hint
+    assert hint is not None and hint.indices.tolist() == [0, 1, 2, 3, 4]
+
+
+def _attempts(closure: LoopClosure, drive: Drive) -> list[str]:
+    out = []
+    for k, i in enumerate(DRIVE):
+        step = closure.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC,
+                                                                          drive.odometry(i)))
+        out += [repr(c) for c in step.scan.attempts]
+    return out
+
+
+def test_without_the_back_end_or_graph_candidates_nothing_changes() -> None:
+    drive = _drive()
+    plain = _attempts(LoopClosure(LoopDetector(CFG.replace(backend=False))), drive)
+    assert plain and any("source='descriptor'" in a for a in plain)
+    # The back end on but no graph candidates: the same candidates, the same verdicts.
+    assert _attempts(LoopClosure(LoopDetector(CFG.replace(graph_candidates=0))), drive) == plain
+    # Graph candidates on but no back end (no hint): the same.
+    assert _attempts(LoopClosure(LoopDetector(CFG.replace(backend=False,
+                                                          graph_candidates=3))), drive) == plain
+    # Without odometry there is no graph and no hint either.
+    closure = LoopClosure(LoopDetector(CFG.replace(graph_candidates=3)))
+    no_odom = []
+    for k, i in enumerate(DRIVE):
+        no_odom += [repr(c) for c in closure.process(drive.scan(i).points, k * SEC).scan.attempts]
+    assert closure.hint is None
+    assert [a for a in no_odom] == [a for a in _attempts(
+        LoopClosure(LoopDetector(CFG.replace(backend=False))), drive)]

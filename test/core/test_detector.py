@@ -57,7 +57,8 @@ def test_revisit_is_found_with_fields_and_yaw() -> None:
                                    'match_stamp_ns', 'match_session', 'distance', 'yaw',
                                    'margin', 'verified', 'pose', 'fitness', 'rmse',
                                    'covariance', 'reason', 'overlap', 'conflict', 'constraint',
-                                   'spread'}
+                                   'spread', 'source'}
+    assert cand.source == 'descriptor'
     # Descriptor only: the pose is the yaw guess, nothing verified.
     assert (cand.verified, cand.reason) == (False, 'descriptor')
     assert cand.pose[:3] == (0.0, 0.0, 0.0) and math.isnan(cand.fitness)

@@ -1,0 +1,198 @@
+"""Loop candidates by position: earlier keyframes near the query in the pose graph's estimate.
+
+The descriptor finds a place by how it looks; the back end knows where the keyframes are.
+Systems people pick find most of their loops by position (LIO-SAM and FAST-LIO-SAM search
+the keyframes within 15-35 m of the current pose, GLIM within 5 m), which finds what the
+descriptor misses: places seen from another heading or offset. Here the two are combined:
+besides the descriptor's candidates, the keyframes near the query in the corrected estimate
+are verified by the same tests, and every candidate the graph knows gets its relative pose
+from the graph as the first start of the coarse registration.
+
+Rule, for query keyframe ``q`` with odometry pose ``O_q`` and a :class:`GraphHint` (the graph
+after keyframe ``q - 1``):
+
+* Predicted pose ``P_q = C O_q``, ``C = T_map_odom`` of the newest keyframe in the graph.
+* Radius ``r = min(graph_candidate_max_radius_m, graph_candidate_radius_m +
+  graph_candidate_sigmas * sigma)``, ``sigma`` the query's position uncertainty: the square
+  root of the largest eigenvalue of the newest keyframe's marginal position covariance, plus
+  the odometry step from it to the query (the back end's noise model, and the newest pose's
+  heading uncertainty times the step's length); the cap when the graph gives no covariance.
+* Eligible: this session's keyframes ``j`` in the graph outside the detector's exclusion
+  window (``j < q - exclude_recent_frames``, ``stamp_q - stamp_j >= exclude_recent_sec``)
+  with at least ``graph_candidate_min_path_m`` of odometry path driven from ``j`` to ``q``
+  (summed over the graph's keyframes: a loop to a keyframe just driven past tells the graph
+  nothing the odometry does not).
+* Those within ``r`` of ``P_q`` (3-D distance of the sensor positions), nearest first, at
+  most ``graph_candidates``; each with the graph's relative pose ``T_mq = P_j^-1 P_q``.
+
+Plain numpy: the node hands the hint over from an immutable snapshot; nothing here touches
+gtsam.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.graphnoise import model_covariance
+
+if TYPE_CHECKING:
+    from solid_ros.core.graphtypes import Keyframe
+
+__all__ = ['GraphCandidate', 'GraphHint', 'near_keyframes', 'search_radius']
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+def _frozen(a: npt.ArrayLike, dtype: type, shape: tuple[int, ...]) -> npt.NDArray[np.generic]:
+    out: npt.NDArray[np.generic] = np.array(a, dtype=dtype).reshape(shape)
+    out.flags.writeable = False  # shared between threads: nobody may change it
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class GraphHint:
+    """What the back end knows when a keyframe is verified (read-only arrays).
+
+    Attributes:
+        indices: (N,) this session's keyframes in the graph, ascending.
+        stamps_ns: (N,) their stamps.
+        poses: (N, 4, 4) their corrected poses ``T_map_sensor``.
+        odom: (N, 4, 4) their odometry poses ``T_odom_sensor``.
+        correction: ``T_map_odom`` of the newest keyframe.
+        covariance: 6x6 marginal covariance of the newest keyframe's pose (ROS order), or
+            None when unknown.
+    """
+
+    indices: IntArray
+    stamps_ns: IntArray
+    poses: FloatArray
+    odom: FloatArray
+    correction: FloatArray
+    covariance: FloatArray | None = None
+
+    @classmethod
+    def of(cls, indices: npt.ArrayLike, stamps_ns: npt.ArrayLike, poses: npt.ArrayLike,
+           odom: npt.ArrayLike, correction: npt.ArrayLike,
+           covariance: npt.ArrayLike | None = None) -> GraphHint:
+        """A hint holding read-only copies of the arrays."""
+        n = len(np.asarray(indices).reshape(-1))
+        cov = None if covariance is None else _frozen(covariance, np.float64, (6, 6))
+        return cls(_frozen(indices, np.int64, (n,)),  # type: ignore[arg-type]
+                   _frozen(stamps_ns, np.int64, (n,)),  # type: ignore[arg-type]
+                   _frozen(poses, np.float64, (n, 4, 4)),  # type: ignore[arg-type]
+                   _frozen(odom, np.float64, (n, 4, 4)),  # type: ignore[arg-type]
+                   _frozen(correction, np.float64, (4, 4)), cov)  # type: ignore[arg-type]
+
+    @classmethod
+    def from_keyframes(cls, keyframes: Sequence[Keyframe], correction: npt.ArrayLike,
+                       covariance: npt.ArrayLike | None = None) -> GraphHint:
+        """A hint from :meth:`~solid_ros.core.posegraph.PoseGraph.keyframes`."""
+        return cls.of([k.index for k in keyframes], [k.stamp_ns for k in keyframes],
+                      np.array([k.pose for k in keyframes]).reshape(-1, 4, 4),
+                      np.array([k.odom for k in keyframes]).reshape(-1, 4, 4),
+                      correction, covariance)
+
+    def predict(self, odom_pose: npt.ArrayLike) -> FloatArray:
+        """Corrected pose ``T_map_odom @ odom_pose`` of a pose of the odometry."""
+        out: FloatArray = self.correction @ np.asarray(odom_pose, dtype=np.float64)
+        return out
+
+    def pose_of(self, index: int) -> FloatArray | None:
+        """Corrected pose of keyframe ``index`` (None: not in the graph)."""
+        k = int(np.searchsorted(self.indices, index))
+        if k < len(self.indices) and int(self.indices[k]) == index:
+            out: FloatArray = self.poses[k]
+            return out
+        return None
+
+    @cached_property
+    def path_m(self) -> FloatArray:
+        """Odometry path driven up to each keyframe, metres (from the first one)."""
+        steps = np.linalg.norm(np.diff(self.odom[:, :3, 3], axis=0), axis=1)
+        out: FloatArray = np.concatenate(([0.0], np.cumsum(steps)))
+        return out
+
+
+@dataclass(frozen=True)
+class GraphCandidate:
+    """An earlier keyframe near the query in the graph's estimate.
+
+    Attributes:
+        index: the keyframe's index in this session.
+        stamp_ns: its stamp.
+        distance_m: its distance from the query's predicted position, metres.
+        T_mq: the graph's relative pose (query sensor in the keyframe's sensor frame).
+    """
+
+    index: int
+    stamp_ns: int
+    distance_m: float
+    T_mq: FloatArray
+
+
+def search_radius(covariance: npt.ArrayLike | None, config: SolidConfig,
+                  step: npt.ArrayLike | None = None) -> float:
+    """The search radius around a query (see the module docstring).
+
+    Args:
+        covariance: 6x6 marginal covariance (ROS order) of the newest keyframe's pose.
+        config: the ``graph_candidate_*`` settings and the back end's odometry model.
+        step: 4x4 odometry step from the newest keyframe to the query (None: none).
+    """
+    cap = config.graph_candidate_max_radius_m
+    if covariance is None:
+        return cap
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape != (6, 6) or not bool(np.all(np.isfinite(cov))):
+        return cap
+    var = _largest(cov[:3, :3])
+    if step is not None:
+        T = np.asarray(step, dtype=np.float64)
+        var += (_largest(model_covariance(T, config)[:3, :3])
+                + float(T[:3, 3] @ T[:3, 3]) * _largest(cov[3:, 3:]))
+    sigma = math.sqrt(var)
+    return min(cap, config.graph_candidate_radius_m + config.graph_candidate_sigmas * sigma)
+
+
+def _largest(block: FloatArray) -> float:
+    """Largest eigenvalue of a symmetric block (0 when negative)."""
+    return max(float(np.linalg.eigvalsh(0.5 * (block + block.T))[-1]), 0.0)
+
+
+def near_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: npt.ArrayLike,
+                   config: SolidConfig) -> list[GraphCandidate]:
+    """The eligible keyframes near the query's predicted pose, nearest first.
+
+    Args:
+        hint: the graph's estimate.
+        query_index: the query keyframe's index.
+        stamp_ns: its stamp.
+        odom_pose: its 4x4 odometry pose.
+        config: ``graph_candidate*`` and the exclusion window.
+    """
+    n = len(hint.indices)
+    if config.graph_candidates <= 0 or n == 0:
+        return []
+    odom = np.asarray(odom_pose, dtype=np.float64)
+    predicted = hint.predict(odom)
+    path = hint.path_m[-1] + float(np.linalg.norm(odom[:3, 3] - hint.odom[-1, :3, 3]))
+    ok = hint.indices < query_index - config.exclude_recent_frames
+    ok &= path - hint.path_m >= config.graph_candidate_min_path_m
+    if config.exclude_recent_sec > 0.0:
+        ok &= stamp_ns - hint.stamps_ns >= round(config.exclude_recent_sec * 1e9)
+    dist = np.linalg.norm(hint.poses[:, :3, 3] - predicted[:3, 3], axis=1)
+    step = np.linalg.solve(hint.odom[-1], odom)
+    ok &= dist <= search_radius(hint.covariance, config, step)
+    picked = np.flatnonzero(ok)
+    picked = picked[np.argsort(dist[picked], kind='stable')][:config.graph_candidates]
+    return [GraphCandidate(int(hint.indices[k]), int(hint.stamps_ns[k]), float(dist[k]),
+                           np.linalg.solve(hint.poses[k], predicted)) for k in picked]

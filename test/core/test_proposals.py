@@ -1,0 +1,145 @@
+"""Candidates by position (solid_ros.core.proposals): radius, eligibility, order, pose."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.geometry import rot_z
+from solid_ros.core.proposals import GraphHint, near_keyframes, search_radius
+
+CFG = SolidConfig(graph_candidates=3, graph_candidate_radius_m=5.0, graph_candidate_sigmas=3.0,
+                  graph_candidate_max_radius_m=15.0, graph_candidate_min_path_m=10.0,
+                  exclude_recent_frames=5)
+
+
+def _pose(x: float, y: float = 0.0, yaw: float = 0.0) -> npt.NDArray[np.float64]:
+    T = np.eye(4)
+    T[:3, :3] = rot_z(yaw)
+    T[:2, 3] = (x, y)
+    return T
+
+
+def _cov(sigma_m: float) -> npt.NDArray[np.float64]:
+    return np.diag([sigma_m ** 2] * 3 + [1e-4] * 3)
+
+
+def _line(n: int, step: float = 1.0) -> GraphHint:
+    """Keyframes 0..n-1 one ``step`` apart along x, odometry = corrected, 1 s apart."""
+    poses = np.array([_pose(i * step) for i in range(n)])
+    return GraphHint.of(np.arange(n), np.arange(n) * 10**9, poses, poses, np.eye(4), _cov(0.0))
+
+
+def test_radius_grows_with_the_covariance_from_the_floor_to_the_cap() -> None:
+    assert search_radius(_cov(0.0), CFG) == pytest.approx(5.0)  # certain: the floor
+    assert search_radius(_cov(1.0), CFG) == pytest.approx(8.0)  # 5 m + 3 sigma
+    assert search_radius(_cov(2.0), CFG) == pytest.approx(11.0)
+    assert search_radius(_cov(10.0), CFG) == pytest.approx(15.0)  # the cap
+    # The largest direction counts, whatever the frame.
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.diag([0.01, 4.0, 0.01])
+    assert search_radius(cov, CFG) == pytest.approx(11.0)
+    # The step from the newest keyframe to the query adds the odometry model's variance and
+    # the newest heading's uncertainty over the step's length.
+    cov = _cov(1.0)
+    cov[3:, 3:] = np.eye(3) * 0.01 ** 2  # 0.01 rad
+    step = _pose(100.0)
+    want = 5.0 + 3.0 * math.sqrt(1.0 + CFG.backend_odom_trans_sigma ** 2 * 100.0
+                                 + CFG.backend_odom_floor_m ** 2 + (100.0 * 0.01) ** 2)
+    assert search_radius(cov, CFG, step) == pytest.approx(want)
+    assert search_radius(cov, CFG, np.eye(4)) == pytest.approx(
+        5.0 + 3.0 * math.sqrt(1.0 + CFG.backend_odom_floor_m ** 2))
+    # Unknown or unusable covariance: the cap.
+    assert search_radius(None, CFG) == 15.0
+    assert search_radius(np.full((6, 6), np.nan), CFG) == 15.0
+    assert search_radius(np.eye(3), CFG) == 15.0
+
+
+def _loop_hint(sigma_m: float = 0.0, correction: npt.NDArray[np.float64] | None = None,
+               ) -> GraphHint:
+    """A square drive of 40 keyframes, 2 m apart (80 m around), back near the start."""
+    xy = ([(2.0 * i, 0.0) for i in range(10)] + [(20.0, 2.0 * i) for i in range(10)]
+          + [(20.0 - 2.0 * i, 20.0) for i in range(10)] + [(0.0, 20.0 - 2.0 * i)
+                                                            for i in range(10)])
+    poses = np.array([_pose(x, y) for x, y in xy])
+    return GraphHint.of(np.arange(40), np.arange(40) * 10**9, poses, poses,
+                        np.eye(4) if correction is None else correction, _cov(sigma_m))
+
+
+def test_nearest_first_within_the_radius_at_most_the_count() -> None:
+    hint = _loop_hint()
+    # Query 40 at (0.5, 1.0), back at the start: keyframes 0 (1.12 m), 39 (1.12 m, but within
+    # exclude_recent_frames, as 35-38 are), 1 (1.80 m), 2 (3.64 m), then 3 (5.59 m, too far).
+    near = near_keyframes(hint, 40, 40 * 10**9, _pose(0.5, 1.0), CFG)
+    assert [c.index for c in near] == [0, 1, 2]
+    np.testing.assert_allclose([c.distance_m for c in near],
+                               [math.hypot(0.5, 1.0), math.hypot(1.5, 1.0), math.hypot(3.5, 1.0)])
+    # The relative pose is the graph's: the query's predicted pose in the keyframe's frame.
+    np.testing.assert_allclose(near[0].T_mq[:3, 3], [0.5, 1.0, 0.0], atol=1e-12)
+    assert near_keyframes(hint, 40, 40 * 10**9, _pose(0.5, 1.0),
+                          CFG.replace(graph_candidates=1))[0].index == 0
+    assert near_keyframes(hint, 40, 40 * 10**9, _pose(0.5, 1.0),
+                          CFG.replace(graph_candidates=0)) == []
+
+
+def test_exclusion_window_and_path_rule() -> None:
+    hint = _loop_hint()
+    q = _pose(0.5, 1.0)
+    everything = CFG.replace(graph_candidates=100, graph_candidate_max_radius_m=1000.0,
+                             graph_candidate_radius_m=1000.0)
+    # Frames: indices < 40 - 5 only.
+    got = {c.index for c in near_keyframes(hint, 40, 40 * 10**9, q, everything)}
+    assert max(got) == 34
+    # Path: keyframe j is eligible when at least 10 m were driven since it (keyframe 39 at
+    # (0, 2) is 78 m of path from the start; the query adds 1.1 m).
+    got = {c.index for c in near_keyframes(
+        hint, 40, 40 * 10**9, q, everything.replace(exclude_recent_frames=0))}
+    assert 34 in got and 35 not in got  # 11.1 m and 9.1 m of path
+    # Seconds: the detector's exclude_recent_sec applies too.
+    got = {c.index for c in near_keyframes(
+        hint, 40, 40 * 10**9, q, everything.replace(exclude_recent_sec=20.0))}
+    assert max(got) == 20
+
+
+def test_the_query_is_placed_by_the_correction() -> None:
+    # The odometry drifted 6 m along x: the graph's correction brings the query back home.
+    correction = _pose(-6.0)
+    hint = _loop_hint(correction=correction)
+    near = near_keyframes(hint, 40, 40 * 10**9, _pose(6.5, 1.0), CFG)
+    assert near and near[0].index == 0
+    # Without the correction the query would be at (6.5, 1): nearest keyframe 3.
+    plain = near_keyframes(_loop_hint(), 40, 40 * 10**9, _pose(6.5, 1.0), CFG)
+    assert plain[0].index == 3
+
+
+def test_a_larger_covariance_reaches_farther() -> None:
+    q = _pose(0.0, -8.0)  # 8 m beyond keyframe 0
+    assert near_keyframes(_loop_hint(0.0), 40, 40 * 10**9, q, CFG) == []
+    near = near_keyframes(_loop_hint(1.5), 40, 40 * 10**9, q, CFG)  # radius 9.5 m
+    assert [c.index for c in near] == [0, 1, 2]  # 8.0, 8.2 and 8.9 m; 3 is 10 m off
+
+
+def test_a_turned_keyframe_gets_its_relative_heading() -> None:
+    poses = np.array([_pose(0.0, 0.0, math.pi / 2)]
+                     + [_pose(2.0 * i + 20.0) for i in range(1, 30)])
+    hint = GraphHint.of(np.arange(30), np.arange(30) * 10**9, poses, poses, np.eye(4))
+    (c, *_) = near_keyframes(hint, 30, 30 * 10**9, _pose(1.0, 0.0), CFG)
+    assert c.index == 0
+    # The query (heading 0, 1 m along x) in keyframe 0's frame (heading 90 deg).
+    np.testing.assert_allclose(c.T_mq[:3, 3], [0.0, -1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(c.T_mq[:3, :3], rot_z(-math.pi / 2), atol=1e-12)
+
+
+def test_hint_is_read_only_and_finds_poses_by_index() -> None:
+    hint = _line(10)
+    with pytest.raises(ValueError):
+        hint.poses[0, 0, 3] = 1.0
+    assert hint.pose_of(4) is not None and hint.pose_of(4)[0, 3] == 4.0  # type: ignore[index]
+    assert hint.pose_of(10) is None
+    np.testing.assert_allclose(hint.path_m, np.arange(10.0))
+    assert near_keyframes(GraphHint.of([], [], np.zeros((0, 4, 4)), np.zeros((0, 4, 4)),
+                                       np.eye(4)), 3, 0, np.eye(4), CFG) == []
