@@ -9,9 +9,11 @@ comma-separated column names of :data:`COLUMNS`. Row ``i`` column ``j`` is
 After the first ten columns (the layout of older publishers) come ``verified`` (1 or 0), the
 relative pose ``T`` = pose of the query sensor in the match sensor's frame (``p_match = T
 p_query``) as ``tx ty tz qx qy qz qw``, ``fitness``, ``rmse`` and the 6x6 covariance of ``T``
-row-major as ``cov_0`` ... ``cov_35`` (ROS order x, y, z, roll, pitch, yaw). Columns are
-found by name, so a decoder reads older 10-column messages too: their missing columns decode
-as ``verified`` 0 and NaN.
+row-major as ``cov_0`` ... ``cov_35`` (ROS order x, y, z, roll, pitch, yaw), then ``source``
+(what proposed the loop: 0 the descriptor, 1 the pose graph's estimate; see
+:data:`SOURCE_CODES`), the last column since the graph's candidates came. Columns are found
+by name, so a decoder reads older messages too: their missing columns decode as ``verified``
+0, ``source`` 0 (the descriptor: nothing else proposed loops then) and NaN.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from solid_ros.core.errors import SolidError
 from solid_ros.core.stamps import join_stamp, split_stamp
 
 __all__ = ['BASE_COLUMNS', 'CANDIDATE_FIELDS', 'COLUMNS', 'COLUMNS_LABEL', 'COV_COLUMNS',
-           'INT_COLUMNS', 'MESSAGE_FIELDS', 'POSE_COLUMNS', 'ROWS_LABEL', 'SPANS',
+           'INT_COLUMNS', 'MESSAGE_FIELDS', 'POSE_COLUMNS', 'ROWS_LABEL', 'SOURCE_CODES', 'SPANS',
            'CandidateDecodeError', 'candidate_columns', 'candidate_values', 'decode_candidates',
            'layout_dims', 'split_stamp', 'to_rows']
 
@@ -42,10 +44,13 @@ _SPLIT = {'query_stamp_ns': ('query_stamp_sec', 'query_stamp_nanosec'),
           'match_stamp_ns': ('match_stamp_sec', 'match_stamp_nanosec')}
 CANDIDATE_FIELDS: tuple[str, ...] = tuple(f.name for f in fields(LoopCandidate))
 # The message's fields in column order; the first eight (ten columns) are the layout of older
-# publishers.
+# publishers; columns are only ever appended.
 MESSAGE_FIELDS: tuple[str, ...] = (
     'query_index', 'match_index', 'query_stamp_ns', 'match_stamp_ns', 'distance', 'yaw',
-    'margin', 'match_session', 'verified', 'pose', 'fitness', 'rmse', 'covariance')
+    'margin', 'match_session', 'verified', 'pose', 'fitness', 'rmse', 'covariance', 'source')
+# A string field's value as a number in the message, and back.
+SOURCE_CODES: dict[str, int] = {'descriptor': 0, 'graph': 1}
+_CODES: dict[str, dict[str, int]] = {'source': SOURCE_CODES}
 
 
 def candidate_columns(layout: Iterable[str], *, extra: Iterable[str] = (),
@@ -89,7 +94,10 @@ BASE_COLUMNS: tuple[str, ...] = candidate_columns(MESSAGE_FIELDS[:8], split_stam
 COLUMNS: tuple[str, ...] = candidate_columns(MESSAGE_FIELDS, split_stamps=True)
 # Columns holding integers (decoded as int).
 INT_COLUMNS = frozenset({'query_index', 'match_index', 'query_stamp_sec', 'query_stamp_nanosec',
-                         'match_stamp_sec', 'match_stamp_nanosec', 'match_session', 'verified'})
+                         'match_stamp_sec', 'match_stamp_nanosec', 'match_session', 'verified',
+                         'source'})
+# What a column an older publisher did not send decodes as (the rest: NaN).
+_ABSENT: dict[str, float] = {'verified': 0.0, 'source': 0.0}
 ROWS_LABEL = 'candidates'
 COLUMNS_LABEL = ','.join(COLUMNS)
 
@@ -105,7 +113,7 @@ def to_rows(candidates: Iterable[Any]) -> npt.NDArray[np.float64]:
         candidates: :class:`~solid_ros.core.detector.LoopCandidate` objects (or any with its
             attributes).
     """
-    rows = [[v for name in MESSAGE_FIELDS
+    rows = [[_CODES[name][v] if name in _CODES else v for name in MESSAGE_FIELDS
              for v in candidate_values(c, name, split_stamps=True)] for c in candidates]
     if not rows:
         return np.empty((0, len(COLUMNS)), dtype=np.float64)
@@ -122,9 +130,10 @@ def decode_candidates(msg: Any) -> list[dict[str, float | int]]:
     """Decode a loop-candidate Float64MultiArray (rclpy or rosbags message) into dicts.
 
     Columns are found by name from ``layout.dim[1].label``, so a newer publisher that appends
-    columns still decodes, and so does an older one without the pose columns (``verified``
-    0, the rest NaN). Each dict holds every column of :data:`COLUMNS` (integers as ``int``)
-    plus ``query_stamp_ns`` and ``match_stamp_ns`` in integer nanoseconds.
+    columns still decodes, and so does an older one without the pose or source columns
+    (``verified`` 0, ``source`` 0, the rest NaN). Each dict holds every column of
+    :data:`COLUMNS` (integers as ``int``) plus ``query_stamp_ns`` and ``match_stamp_ns`` in
+    integer nanoseconds.
 
     Raises:
         CandidateDecodeError: the layout is not two-dimensional, lacks one of the first ten
@@ -157,8 +166,7 @@ def decode_candidates(msg: Any) -> list[dict[str, float | int]]:
         row = data[offset + r * stride: offset + r * stride + ncol]
         item: dict[str, float | int] = {}
         for name in COLUMNS:
-            value = float(row[col[name]]) if name in col else (0.0 if name == 'verified'
-                                                               else math.nan)
+            value = float(row[col[name]]) if name in col else _ABSENT.get(name, math.nan)
             item[name] = int(value) if name in INT_COLUMNS else value
         item['query_stamp_ns'] = join_stamp(int(item['query_stamp_sec']),
                                             int(item['query_stamp_nanosec']))

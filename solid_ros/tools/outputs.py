@@ -37,7 +37,7 @@ CSV_LAYOUT = ('query_index', 'match_index', 'query_stamp_ns', 'match_stamp_ns',
               'match_session', 'distance', 'yaw', 'margin', 'accepted', 'best', 'true_match',
               'gt_distance_m', 'yaw_gt', 'verified', 'reason', 'pose', 'fitness', 'rmse',
               'overlap', 'conflict', 'constraint', 'spread', 'trans_err_m', 'rot_err_deg',
-              'pose_correct', 'covariance')
+              'pose_correct', 'covariance', 'source')
 CSV_COLUMNS = candidate_columns(CSV_LAYOUT, extra=CSV_EXTRA)
 
 Format = Callable[[Any], Any]
@@ -53,7 +53,8 @@ def _num(v: float) -> str:
 
 
 def _margin(v: float) -> str:
-    return f'{v:.6f}' if math.isfinite(v) else 'inf'
+    """'inf' when no other place was found, empty when not measured (a graph candidate)."""
+    return f'{v:.6f}' if math.isfinite(v) else ('' if math.isnan(v) else 'inf')
 
 
 _FORMATS: dict[str, Format] = {

@@ -52,7 +52,7 @@ def test_columns_are_derived_from_the_candidate_fields() -> None:
                             'distance', 'yaw', 'margin', 'match_session')
     assert COLUMNS == (BASE_COLUMNS + ('verified', 'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw',
                                        'fitness', 'rmse')
-                       + tuple(f'cov_{i}' for i in range(36)))
+                       + tuple(f'cov_{i}' for i in range(36)) + ('source',))
     assert set(MESSAGE_FIELDS) <= set(CANDIDATE_FIELDS)
     assert candidate_columns(['pose', 'extra', 'query_stamp_ns'], extra=['extra']) == (
         'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw', 'extra', 'query_stamp_ns')

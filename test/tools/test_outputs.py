@@ -21,7 +21,8 @@ def test_replay_csv_holds_every_candidate_field_once() -> None:
     assert len(CSV_COLUMNS) == len(set(CSV_COLUMNS)) == len(CSV_LAYOUT) + 6 + 35
     assert CSV_COLUMNS[:8] == ('query_index', 'match_index', 'query_stamp_ns', 'match_stamp_ns',
                                'match_session', 'distance', 'yaw', 'margin')
-    assert CSV_COLUMNS[-37:-36] == ('pose_correct',) and CSV_COLUMNS[-1] == 'cov_35'
+    assert CSV_COLUMNS[-38:-37] == ('pose_correct',) and CSV_COLUMNS[-2] == 'cov_35'
+    assert CSV_COLUMNS[-1] == 'source'  # added last: the columns before keep their place
 
 
 def test_cells_fill_the_layout_in_order() -> None:
