@@ -10,6 +10,14 @@ Definitions (keyframes numbered 0..K-1 in replay order; ``ref`` their reference 
 * Recall: among queries with a true loop (an earlier keyframe outside the exclusion window
   within the radius; :func:`solid_ros.tools.evaluation.ground_truth`), the fraction with at
   least one correct published loop.
+* Revisit recall (:func:`revisits`, :func:`revisit_recall`): a keyframe revisits when an
+  earlier keyframe lies within ``radius`` (5 m) of it in the reference poses after at least
+  ``min_path_m`` (30 m) of reference path driven from that keyframe to it (optionally also
+  within ``max_heading_deg``); revisit recall is the fraction of revisiting keyframes with at
+  least one correct published loop (to any keyframe). It does not depend on the detector's
+  exclusion window, so runs with different settings, and other systems, count alike.
+* By source: published and correct loops per :attr:`LoopRecord.source` (``descriptor`` or
+  ``graph``, :mod:`solid_ros.core.proposals`).
 * Sweep (with verification): at a ``verify_min_overlap`` of ``t`` the published loops are
   taken to be the attempts that reached the overlap test and passed every other test (the
   published, verified ones) whose recorded structure overlap is at least ``t``; precision and
@@ -33,7 +41,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ['LoopRecord', 'overlap_sweep', 'pose_error', 'score_loops']
+__all__ = ['REVISIT_MIN_PATH_M', 'REVISIT_RADIUS_M', 'LoopRecord', 'overlap_sweep',
+           'pose_error', 'revisit_recall', 'revisits', 'score_loops']
+
+REVISIT_RADIUS_M = 5.0
+REVISIT_MIN_PATH_M = 30.0
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -54,6 +66,7 @@ class LoopRecord:
         trans_err_m: translation error against the reference (NaN: unknown).
         rot_err_deg: rotation error against the reference (NaN: unknown).
         gt_distance_m: reference distance between the two keyframes (NaN: unknown).
+        source: what proposed it (``descriptor`` or ``graph``).
     """
 
     query: int
@@ -67,6 +80,7 @@ class LoopRecord:
     trans_err_m: float
     rot_err_deg: float
     gt_distance_m: float
+    source: str = 'descriptor'
 
     def correct(self, max_error_m: float, max_error_deg: float) -> bool:
         """Whether its pose is within the limits of the reference pose."""
@@ -105,6 +119,9 @@ def score_loops(records: Sequence[LoopRecord], positives: npt.ArrayLike, *,
     pos = np.asarray(positives, dtype=bool)
     published = [r for r in records if r.published]
     good = [r for r in published if r.correct(max_error_m, max_error_deg)]
+    by_source = {src: {'published': sum(r.source == src for r in published),
+                       'correct': sum(r.source == src for r in good)}
+                 for src in sorted({r.source for r in published})}
     found = {r.query for r in good if 0 <= r.query < len(pos) and pos[r.query]}
     n_pos = int(pos.sum())
     verified_rejected = Counter(r.reason for r in records)
@@ -121,7 +138,54 @@ def score_loops(records: Sequence[LoopRecord], positives: npt.ArrayLike, *,
         'trans_err_m': _stats([r.trans_err_m for r in good]),
         'rot_err_deg': _stats([r.rot_err_deg for r in good]),
         'reasons': dict(sorted(verified_rejected.items())),
+        'by_source': by_source,
     }
+
+
+def revisits(positions: npt.ArrayLike, *, radius: float = REVISIT_RADIUS_M,
+             min_path_m: float = REVISIT_MIN_PATH_M, rotations: npt.ArrayLike | None = None,
+             max_heading_deg: float | None = None) -> npt.NDArray[np.bool_]:
+    """Which keyframes revisit a place (see the module docstring).
+
+    Args:
+        positions: (K, 3) reference positions in keyframe order (NaN rows: unknown; the path
+            over them is the straight line between the known neighbours).
+        radius: an earlier keyframe this close is the same place, metres.
+        min_path_m: ... once at least this much reference path was driven since it.
+        rotations: (K, 3, 3) reference rotations, needed with ``max_heading_deg``.
+        max_heading_deg: also require headings within this many degrees.
+    """
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    known = np.isfinite(pos).all(axis=1)
+    path = np.full(len(pos), np.nan)
+    if known.any():
+        p = pos[known]
+        path[known] = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0),
+                                                                      axis=1))))
+    heads = None
+    if max_heading_deg is not None and rotations is not None:
+        r = np.asarray(rotations, dtype=np.float64)
+        heads = np.arctan2(r[:, 1, 0], r[:, 0, 0])
+    out = np.zeros(len(pos), dtype=bool)
+    for q in np.flatnonzero(known):
+        with np.errstate(invalid='ignore'):
+            ok = (np.linalg.norm(pos[:q] - pos[q], axis=1) <= radius) & (
+                path[q] - path[:q] >= min_path_m)
+            if heads is not None and max_heading_deg is not None:
+                turn = np.abs((heads[:q] - heads[q] + np.pi) % (2 * np.pi) - np.pi)
+                ok &= turn <= math.radians(max_heading_deg)
+        out[q] = bool(ok.any())
+    return out
+
+
+def revisit_recall(records: Sequence[LoopRecord], revisiting: npt.ArrayLike, *,
+                   max_error_m: float = 1.0, max_error_deg: float = 3.0) -> dict[str, Any]:
+    """Revisiting keyframes, those with a correct published loop, and their ratio."""
+    rev = np.asarray(revisiting, dtype=bool)
+    found = {r.query for r in records if r.published and r.correct(max_error_m, max_error_deg)
+             and 0 <= r.query < len(rev) and rev[r.query]}
+    n = int(rev.sum())
+    return {'revisiting': n, 'found': len(found), 'recall': len(found) / n if n else None}
 
 
 def overlap_sweep(records: Sequence[LoopRecord], positives: npt.ArrayLike, current: float, *,

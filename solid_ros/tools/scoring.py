@@ -23,7 +23,16 @@ from solid_ros.core.errors import PoseError
 from solid_ros.core.odometry import nearest_stamp
 from solid_ros.formats.poses import PoseTrack
 from solid_ros.tools.evaluation import Evaluation, evaluate, recommend_threshold
-from solid_ros.tools.loops import LoopRecord, overlap_sweep, pose_error, score_loops
+from solid_ros.tools.loops import (
+    REVISIT_MIN_PATH_M,
+    REVISIT_RADIUS_M,
+    LoopRecord,
+    overlap_sweep,
+    pose_error,
+    revisit_recall,
+    revisits,
+    score_loops,
+)
 from solid_ros.tools.options import ReplayOptions
 from solid_ros.tools.pipeline import ScanLog, published_best
 
@@ -98,6 +107,10 @@ def score(log: ScanLog, track: PoseTrack | None, config: SolidConfig,
     limits = {'max_error_m': options.max_pose_error_m,
               'max_error_deg': options.max_pose_error_deg}
     loops = score_loops(records, ev.truth.has_loop, **limits)
+    revisiting = revisits(reference[:, :3, 3], rotations=reference[:, :3, :3],
+                          max_heading_deg=options.max_heading_deg)
+    loops['revisits'] = {'radius_m': REVISIT_RADIUS_M, 'min_path_m': REVISIT_MIN_PATH_M,
+                         **revisit_recall(records, revisiting, **limits)}
     if config.verify:
         sweep = overlap_sweep(records, ev.truth.has_loop, config.verify_min_overlap,
                               target_precision=options.target_precision, **limits)
@@ -144,7 +157,7 @@ def _records(cfg: SolidConfig, results: list[ScanResult], published: list[LoopCa
                 gd = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
             out.append(LoopRecord(c.query_index, c.match_index, c.match_session,
                                   id(c) in shown, c.verified, c.reason, c.overlap, c.distance,
-                                  te, re_, gd))
+                                  te, re_, gd, c.source))
     return out
 
 

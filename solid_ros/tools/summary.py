@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 from typing import Any
 
 from solid_ros.tools.pipeline import STAGES
@@ -51,7 +52,7 @@ def _run_lines(r: ReplayResult) -> list[str]:
         f'  bag               {r.bag} ({rep["format"]}, {r.topic})',
         f'  integrity         {rep["integrity"]}',
         f'  scans             {r.messages} read, {r.skipped} skipped, {r.keyframes} keyframes',
-        f'  loops published   {len(r.candidates)} ('
+        f'  loops published   {len(r.candidates)} ({_sources(r)}'
         + (f'verified by registration; {_reasons(rep["verification"]["reasons"])})'
            if cfg.verify else f'descriptor only, distance_threshold {cfg.distance_threshold})'),
         f'  throughput        {_fmt(t["scans_per_sec"], ".1f")} scans/s end to end '
@@ -119,6 +120,7 @@ def _score_lines(rep: dict[str, Any], verify: bool) -> list[str]:
         f'  published loops   {loops["correct"]} correct, {loops["false"]} false (pose within '
         f'{loops["max_error_m"]} m / {loops["max_error_deg"]} deg): precision '
         f'{_fmt(loops["precision"])}, recall {_fmt(loops["recall"])}',
+        *_revisit_lines(loops),
         f'  pose error        median {_fmt(te["median"], ".3f")} m, {_fmt(re_["median"], ".2f")}'
         f' deg; p95 {_fmt(te["p95"], ".3f")} m, {_fmt(re_["p95"], ".2f")} deg '
         f'(n={te["count"]})',
@@ -130,6 +132,22 @@ def _score_lines(rep: dict[str, Any], verify: bool) -> list[str]:
         lines.append(f'  by place          {acc["true"]} true, {acc["false"]} false best matches '
                      f'within {m["radius_m"]} m: precision {_fmt(acc["precision"])}, recall '
                      f'{_fmt(acc["recall"])} (descriptor only: the pose carries no translation)')
+    return lines
+
+
+def _revisit_lines(loops: dict[str, Any]) -> list[str]:
+    """Revisit recall and the published loops by what proposed them."""
+    rv = loops.get('revisits')
+    lines = []
+    if rv is not None:
+        lines.append(f'  revisit recall    {_fmt(rv["recall"])} ({rv["found"]} of '
+                     f'{rv["revisiting"]} keyframes with an earlier one within '
+                     f'{rv["radius_m"]:g} m after >= {rv["min_path_m"]:g} m driven got a '
+                     'correct loop)')
+    src = loops.get('by_source') or {}
+    if src:
+        lines.append('  loops by source   ' + ', '.join(
+            f'{k} {v["published"]} ({v["correct"]} correct)' for k, v in src.items()))
     return lines
 
 
@@ -153,6 +171,14 @@ def _sweep_lines(sweep: dict[str, Any], radius_m: float, verify: bool) -> list[s
     lines.append(f'    {sweep["parameter"]}: {sweep["recommended"]}   # precision >= '
                  f'{target} {basis} on this data, recall {_fmt(sweep["recall"])}')
     return lines
+
+
+def _sources(r: ReplayResult) -> str:
+    """'graph N, descriptor M; ' when the pose graph proposed some of the loops."""
+    counts = Counter(c.source for c in r.candidates)
+    if not counts['graph']:
+        return ''
+    return f'descriptor {counts["descriptor"]}, graph {counts["graph"]}; '
 
 
 def _reasons(counts: dict[str, int]) -> str:

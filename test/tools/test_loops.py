@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from solid_ros.core.geometry import rot_z
-from solid_ros.tools.loops import LoopRecord, overlap_sweep, pose_error, score_loops
+from solid_ros.tools.loops import (
+    LoopRecord,
+    overlap_sweep,
+    pose_error,
+    revisit_recall,
+    revisits,
+    score_loops,
+)
 
 
 def _T(x: float, yaw_deg: float) -> np.ndarray:
@@ -19,9 +26,9 @@ def _T(x: float, yaw_deg: float) -> np.ndarray:
 
 
 def _rec(q: int, m: int, *, published: bool = True, verified: bool = True, ov: float = 0.6,
-         te: float = 0.1, re: float = 0.5) -> LoopRecord:
+         te: float = 0.1, re: float = 0.5, source: str = 'descriptor') -> LoopRecord:
     return LoopRecord(q, m, 0, published, verified, 'verified' if verified else 'overlap', ov,
-                      0.05, te, re, 2.0)
+                      0.05, te, re, 2.0, source)
 
 
 def test_pose_error_measures_the_difference() -> None:
@@ -99,3 +106,40 @@ def test_pose_error_follows_the_published_convention() -> None:
     assert pose_error(T_ref, T_ref) == pytest.approx((0.0, 0.0), abs=1e-6)
     te, re = pose_error(np.linalg.inv(T_ref), T_ref)  # the inverse convention is caught
     assert te > 1.0 and re > 3.0
+
+
+def test_revisits_need_an_earlier_keyframe_near_after_the_path() -> None:
+    # Out 20 m along x and back, then 20 m along y: keyframes every 2 m.
+    xs = [(2.0 * i, 0.0) for i in range(11)] + [(20.0 - 2.0 * i, 0.5) for i in range(1, 11)]
+    xs += [(0.0, 2.0 * i) for i in range(1, 4)]
+    pos = np.array([(x, y, 0.0) for x, y in xs])
+    rev = revisits(pos)  # within 5 m after at least 30 m of path
+    # Keyframe 17 at (6, 0.5) is 2.1 m from keyframe 2 after 32.1 m; 16 at (8, 0.5) is 6 m from
+    # keyframes 0-1, the only ones 30 m of path before it. 23 at (0, 6) is 5.5 m or more from
+    # every earlier one.
+    assert rev[17] and not rev[:17].any()
+    assert rev[17:23].all() and not rev[23]
+    assert not revisits(pos, min_path_m=50.0).any()
+    assert revisits(pos, min_path_m=10.0)[12]  # (18, 0.5): 4 m of path after keyframe 10
+    # Unknown positions are no revisits and do not break the path of the others.
+    holes = pos.copy()
+    holes[5] = np.nan
+    got = revisits(holes)
+    assert not got[5] and got[18]
+    # Headings: turned back, the return legs see the other way.
+    rot = np.array([np.eye(3)] * 11 + [rot_z(math.pi)[:3, :3]] * 10 + [np.eye(3)] * 3)
+    turned = revisits(pos, rotations=rot, max_heading_deg=45.0)
+    assert not turned[:21].any() and turned[21:23].all() and not turned[23]
+
+
+def test_revisit_recall_counts_revisiting_keyframes_with_a_correct_loop() -> None:
+    rev = np.zeros(10, bool)
+    rev[[6, 7, 8, 9]] = True
+    records = [_rec(6, 1), _rec(6, 2), _rec(7, 1, te=2.0), _rec(8, 3, published=False),
+               _rec(3, 0), _rec(9, 4, source='graph')]
+    out = revisit_recall(records, rev)
+    assert out == {'revisiting': 4, 'found': 2, 'recall': 0.5}
+    assert revisit_recall([], np.zeros(3, bool))['recall'] is None
+    s = score_loops(records, rev)
+    assert s['by_source'] == {'descriptor': {'published': 4, 'correct': 3},
+                              'graph': {'published': 1, 'correct': 1}}
