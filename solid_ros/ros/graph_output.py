@@ -6,7 +6,10 @@ loops went out, so the back end never delays a loop. The graph is updated there,
 logged, and what the publishers need is copied into one immutable :class:`GraphSnapshot`: the
 correction ``T_map_odom``, the newest pose's covariance and the corrected keyframe path. The
 executor's timers, callbacks and services read the newest snapshot without waiting for the
-graph. No ROS import.
+graph, and so does the verify thread: :meth:`GraphOutput.hint` hands the detector the graph
+after the previous keyframe (taken on that thread, so the node verifies with the same graph as
+the replay) for its candidates by position (:mod:`solid_ros.core.proposals`). Its arrays are
+read-only. No ROS import.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import numpy.typing as npt
 from solid_ros.core.errors import SolidError
 from solid_ros.core.graphtypes import BackendState
 from solid_ros.core.posegraph import PoseGraph
+from solid_ros.core.proposals import GraphHint
 from solid_ros.ros.stages import Log, Verified
 
 __all__ = ['GraphOutput', 'GraphSnapshot']
@@ -58,6 +62,13 @@ class GraphSnapshot:
     odom: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     loops: int = 0
 
+    def hint(self) -> GraphHint | None:
+        """The detector's view of the graph (None before the first keyframe)."""
+        if not len(self.indices):
+            return None
+        return GraphHint(self.indices, self.stamps_ns, self.poses, self.odom, self.correction,
+                         self.covariance)
+
 
 class GraphOutput:
     """Updates the pose graph with each verified keyframe and keeps its newest snapshot.
@@ -82,6 +93,10 @@ class GraphOutput:
     def snapshot(self) -> GraphSnapshot:
         """The newest results."""
         return self._snapshot
+
+    def hint(self) -> GraphHint | None:
+        """The newest snapshot as the detector's hint (see :meth:`GraphSnapshot.hint`)."""
+        return self._snapshot.hint()
 
     def take(self, verified: Verified) -> BackendState | None:
         """Add a verified keyframe and its loops to the graph (verify thread, keyframe order).
@@ -130,13 +145,8 @@ class GraphOutput:
         return out
 
     def _snap(self, state: BackendState) -> GraphSnapshot:
-        kfs = self._graph.keyframes()
-        return GraphSnapshot(
-            version=self._snapshot.version + 1,
-            correction=np.array(state.correction, dtype=np.float64),
-            covariance=None if state.covariance is None else np.array(state.covariance),
-            indices=np.array([k.index for k in kfs], dtype=np.int64),
-            stamps_ns=np.array([k.stamp_ns for k in kfs], dtype=np.int64),
-            poses=np.array([k.pose for k in kfs]).reshape(-1, 4, 4),
-            odom=np.array([k.odom for k in kfs]).reshape(-1, 4, 4),
-            loops=len(self._graph.loops))
+        h = GraphHint.from_keyframes(self._graph.keyframes(), state.correction,
+                                     state.covariance)  # read-only copies
+        return GraphSnapshot(version=self._snapshot.version + 1, correction=h.correction,
+                             covariance=h.covariance, indices=h.indices, stamps_ns=h.stamps_ns,
+                             poses=h.poses, odom=h.odom, loops=len(self._graph.loops))

@@ -124,7 +124,8 @@ class SolidNode(Node):
             self._shared, self._health, self._pose_for, self._hand_on, self.get_logger(),
             queue_size=cfg.queue_size, verify=self._solid_cfg.verify,
             use_odom=self._odom is not None or self._kiss is not None,
-            share=self._peers.share if self._peers is not None else None)
+            share=self._peers.share if self._peers is not None else None,
+            hint=self._graph_output.hint if self._graph_output is not None else None)
         self._stages.start()
         self.get_logger().info(
             f'ready: database {self._shared.size} scans, FOV {self._solid_cfg.fov_width_deg} '
@@ -166,6 +167,7 @@ class SolidNode(Node):
     def _start_backend(self) -> BackendIO | None:
         """The pose graph and its outputs, when ``backend`` is on and there is odometry."""
         solid, cfg = self._solid_cfg, self._node_cfg
+        self._graph_output: GraphOutput | None = None
         if not solid.backend:
             return None
         if self._odom is None and self._kiss is None:
@@ -175,7 +177,8 @@ class SolidNode(Node):
         prior = {}
         if cfg.database_load_path:
             prior = read_map_poses(Path(cfg.database_load_path).expanduser()).poses
-        output = GraphOutput(PoseGraph(solid, prior_map=prior), self.get_logger())
+        output = self._graph_output = GraphOutput(PoseGraph(solid, prior_map=prior),
+                                                  self.get_logger())
         return BackendIO(self, cfg, output, self._shared, mount_rotation(solid),
                          self._odom_frame_now)
 

@@ -19,6 +19,7 @@ from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import CloudFetcher, LoopCandidate, LoopDetector, Proposal, ScanResult
 from solid_ros.core.keyframes import KeyframeCloud
 from solid_ros.core.mapping import keyframe_clouds
+from solid_ros.core.proposals import GraphHint
 from solid_ros.formats.peers import DescriptorMessage
 
 __all__ = ['SharedDetector']
@@ -60,12 +61,14 @@ class SharedDetector:
         with self._describe_lock:
             return self._detector.propose(points, stamp_ns, pose=pose)
 
-    def verify(self, proposal: Proposal) -> tuple[ScanResult, LoopDetector]:
-        """Stage 2: :meth:`LoopDetector.verify` under the stage-2 lock; also returns the
-        detector that verified (a reset may replace it right after)."""
+    def verify(self, proposal: Proposal,
+               hint: GraphHint | None = None) -> tuple[ScanResult, LoopDetector]:
+        """Stage 2: :meth:`LoopDetector.verify` (with the pose graph's ``hint``) under the
+        stage-2 lock; also returns the detector that verified (a reset may replace it right
+        after)."""
         with self._verify_lock:
             detector = self._detector
-            return detector.verify(proposal), detector
+            return detector.verify(proposal, hint), detector
 
     def match_position(self, cand: LoopCandidate, proposal: Proposal,
                        detector: LoopDetector) -> FloatArray | None:

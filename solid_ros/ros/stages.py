@@ -23,6 +23,7 @@ import numpy.typing as npt
 from solid_ros.core.detector import LoopDetector, Proposal, ScanResult
 from solid_ros.core.errors import CloudError
 from solid_ros.core.odometry import OdomSample
+from solid_ros.core.proposals import GraphHint
 from solid_ros.ros.health import WARN_THROTTLE_SEC, InputHealth
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stats import StageTimings
@@ -80,16 +81,20 @@ class Stages:
         verify: whether the detector verifies (read-only while running).
         use_odom: whether a cloud without odometry counts as such.
         share: sends each keyframe's descriptor to peer robots, if any.
+        hint: the pose graph after the keyframes verified so far (read on the verify thread
+            before each keyframe, for the detector's candidates by position), if any.
     """
 
     def __init__(self, shared: SharedDetector, health: InputHealth,
                  pair: Callable[[int, npt.NDArray[np.floating[Any]]], OdomSample | None],
                  hand_on: Callable[[Verified], None],
                  log: Log, *, queue_size: int, verify: bool, use_odom: bool,
-                 share: Callable[[Proposal], None] | None = None) -> None:
+                 share: Callable[[Proposal], None] | None = None,
+                 hint: Callable[[], GraphHint | None] | None = None) -> None:
         self.timings = StageTimings()
         self._shared, self._health, self._log = shared, health, log
         self._pair, self._hand_on, self._share = pair, hand_on, share
+        self._hint = hint
         self._verify, self._use_odom = verify, use_odom
         self._describe_worker: Worker[Cloud] = Worker(
             'solid_describe', self._describe_stage, queue_size, self._describe_failed)
@@ -193,7 +198,9 @@ class Stages:
                 self._log.error(f'verification needs {module}: {err} (pip install small-gicp)')
 
     def _verify_stage(self, keyframe: _Keyframe) -> None:
-        result, detector = self._shared.verify(keyframe.proposal)
+        # The graph after the previous keyframe: its hand_on ran on this thread.
+        hint = self._hint() if self._hint is not None else None
+        result, detector = self._shared.verify(keyframe.proposal, hint)
         self.timings.add('verify', result.times.verify)
         self._hand_on(Verified(result, keyframe.odom, keyframe.proposal, detector))
 

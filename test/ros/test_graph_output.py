@@ -83,6 +83,7 @@ def test_snapshots_follow_the_graph_and_a_loop_moves_the_correction() -> None:
     log = Log()
     out = GraphOutput(PoseGraph(SolidConfig(backend=True)), log)
     assert out.snapshot.version == 0 and np.array_equal(out.snapshot.correction, np.eye(4))
+    assert out.hint() is None  # no keyframe yet
     for k in range(165):
         out.take(_verified(k, odo[k]))
     before = out.snapshot
@@ -98,8 +99,17 @@ def test_snapshots_follow_the_graph_and_a_loop_moves_the_correction() -> None:
     np.testing.assert_allclose(after.correction @ after.odom[-1], after.poses[-1], atol=1e-6)
     assert after.covariance is not None and after.covariance.shape == (6, 6)
     assert out.values()['backend_loops'] == 1
+    # The detector's hint is the same snapshot, read-only for the threads that share it.
+    hint = out.hint()
+    assert hint is not None and hint.indices.tolist() == list(range(166))
+    np.testing.assert_array_equal(hint.poses, after.poses)
+    np.testing.assert_array_equal(hint.correction, after.correction)
+    for array in (hint.poses, hint.odom, hint.indices, hint.correction, after.poses):
+        with pytest.raises(ValueError):
+            array.flat[0] = 1.0
     out.reset()
     assert out.snapshot.version == 167 and len(out.snapshot.stamps_ns) == 0
+    assert out.hint() is None
 
 
 def test_a_keyframe_without_pose_is_logged_and_changes_no_snapshot() -> None:

@@ -10,6 +10,7 @@ import numpy as np
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.detector import LoopDetector
 from solid_ros.core.odometry import OdomSample
+from solid_ros.core.proposals import GraphHint
 from solid_ros.ros.health import InputHealth
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Stages, Verified
@@ -42,7 +43,7 @@ def scene(seed: int = 3) -> np.ndarray:
 
 
 def run(config: SolidConfig, clouds: list[tuple[np.ndarray, int]], use_odom: bool = True,
-        ) -> tuple[list[Verified], InputHealth, Log, list[str]]:
+        hint: Any = None) -> tuple[list[Verified], InputHealth, Log, list[str]]:
     shared = SharedDetector(LoopDetector(config))
     health = InputHealth('/points', '/odom' if use_odom else None, 'reliable', 0.05,
                          lambda topic: 0)
@@ -60,7 +61,7 @@ def run(config: SolidConfig, clouds: list[tuple[np.ndarray, int]], use_odom: boo
         return OdomSample(stamp_ns, pose) if stamp_ns % (2 * SEC) == 0 else None
 
     stages = Stages(shared, health, pair, hand_on, log, queue_size=100, verify=config.verify,
-                    use_odom=use_odom)
+                    use_odom=use_odom, hint=hint)
     stages.start()
     try:
         for cloud in clouds:
@@ -105,6 +106,40 @@ def test_the_same_loops_as_the_detector_alone() -> None:
         [(c.query_index, c.match_index) for c in r] for r in want]
     assert sum(len(r) for r in got) > 0
     assert set(threads) == {'solid_verify'}
+
+
+def test_the_verify_thread_reads_the_graph_hint_before_each_keyframe() -> None:
+    # Keyframe 3 lies where the graph puts keyframe 0; the descriptor proposes nothing
+    # (distance_threshold 0), so the one loop is the graph's candidate.
+    pts = scene(11)
+    clouds = [(pts + [40.0 * i, 0.0, 0.0] if i in (1, 2) else pts, 2 * (i + 1) * SEC)
+              for i in range(4)]
+    poses = np.array([np.eye(4)] * 3)
+    for i in range(3):
+        poses[i, 0, 3] = 2.0 * (i + 1)  # the pair() above: x = stamp in seconds
+    hint = GraphHint.of([0, 1, 2], [c[1] for c in clouds[:3]], poses, poses,
+                        _shift(-6.0))  # the odometry drifted 6 m
+    calls: list[str] = []
+
+    def read() -> GraphHint:
+        calls.append(threading.current_thread().name)
+        return hint
+
+    cfg = LOOP_EVERY_SCAN.replace(distance_threshold=0.0, graph_candidates=2,
+                                  graph_candidate_min_path_m=0.0, exclude_recent_frames=1)
+    out, _, _, _ = run(cfg, clouds, hint=read)
+    assert set(calls) == {'solid_verify'} and len(calls) == 4
+    loops = [c for v in out for c in v.result.loops]
+    assert [(c.query_index, c.match_index, c.source) for c in loops] == [(3, 0, 'graph')]
+    # Without the hint, nothing.
+    out, _, _, _ = run(cfg, clouds)
+    assert [c for v in out for c in v.result.loops] == []
+
+
+def _shift(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
 
 
 def test_unusable_clouds_are_rejected_and_failures_counted_the_stages_go_on() -> None:
