@@ -24,9 +24,21 @@ the sensor 1.4 m high and its near-field dead zone 0.5 m) counts a true loop wit
 45 deg of heading (the 70-degree view sees another wall beyond that); its goal is precision
 1.0; ``room_fine`` replays it on 0.25 m keyframe clouds (0.75 m coarse).
 
+Drifting odometry (``--odometry drift``): the scans go through the product's
+:class:`~solid_ros.core.closure.LoopClosure` with the back end on, fed the simulator's drifting
+odometry (``scan.odom``: its default model, about 1.5 % of the path; ``--drift strong``: 1 %
+scale error and 0.055 deg/m heading bias, about 5 %, as ``bench_backend.py``; the room walk gets
+the same models over its own path). Then the back end's candidates by position
+(``graph_candidates``, :mod:`solid_ros.core.proposals`) take part; ``--set
+graph_candidates=0`` turns them off for a before / after. Also printed per case: the revisit
+recall (:func:`solid_ros.tools.loops.revisits`: keyframes with an earlier one within 5 m after
+at least 30 m of reference path; the room: within 1.5 m and 45 deg after 8 m) and the loops
+the pose graph proposed (``graph``), with the verification time per keyframe (median, p95).
+
 Usage: ``python test/bench/bench_generalisation.py [--sensors hdl64,avia_like]
 [--routes revisits] [--scenes lookalike] [--extras none|all|NAME,...] [--seed 0]
-[--scans N] [--jobs 1] [--dump DIR] [--json FILE] [--odom-check]``. The full matrix (16 + 7
+[--scans N] [--jobs 1] [--dump DIR] [--json FILE] [--odom-check] [--odometry reference|drift]
+[--drift default|strong] [--set KEY=VALUE ...]``. The full matrix (16 + 7
 cases, about 15,500 scans, each a keyframe) takes about 11 minutes of CPU (about 6 minutes
 with ``--jobs 2``) on an idle machine: simulating a 64-beam scan costs about 20 ms, describing and
 verifying a keyframe 20-50 ms. ``--dump`` writes every candidate looked at, with its test
@@ -56,14 +68,25 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
+from solid_ros.core.closure import LoopClosure  # noqa: E402
 from solid_ros.core.config import SolidConfig  # noqa: E402
 from solid_ros.core.detector import LoopCandidate, LoopDetector  # noqa: E402
+from solid_ros.core.odometry import OdomSample  # noqa: E402
 from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, avia_like, cast_scan, simulate  # noqa: E402
-from solid_ros.sim.drive import START_NS, pose_matrix  # noqa: E402
+from solid_ros.sim.drive import START_NS, DriveConfig, pose_matrix  # noqa: E402
+from solid_ros.sim.odometry import drift_planar  # noqa: E402
 from solid_ros.sim.scene import Room, build_room  # noqa: E402
 from solid_ros.sim.trajectory import handheld_walk  # noqa: E402
 from solid_ros.tools.evaluation import ground_truth  # noqa: E402
-from solid_ros.tools.loops import LoopRecord, pose_error, score_loops  # noqa: E402
+from solid_ros.tools.loops import (  # noqa: E402
+    REVISIT_MIN_PATH_M,
+    REVISIT_RADIUS_M,
+    LoopRecord,
+    pose_error,
+    revisit_recall,
+    revisits,
+    score_loops,
+)
 
 SENSORS = ('hdl64', 'ouster_like', 'vlp16_like', 'avia_like')
 ROUTES = ('revisits', 'no_revisit')
@@ -74,6 +97,10 @@ OWN_VERTICAL_FOV = ('ouster_like', 'vlp16_like')
 RADIUS = 5.0
 MAX_ERROR_M = 1.0
 MAX_ERROR_DEG = 3.0
+# The odometry models of --drift: the simulator's default (about 1.5 % of the path) and the
+# 5 % of bench_backend.py.
+DRIFTS = {'default': {}, 'strong': {'odom_scale_error': 0.01,
+                                    'odom_heading_bias_deg_per_m': 0.055}}
 
 
 @dataclass(frozen=True)
@@ -89,6 +116,8 @@ class Case:
     overrides: dict[str, Any] = field(default_factory=dict)
     radius: float = RADIUS
     max_heading_deg: float | None = None
+    revisit_radius: float = REVISIT_RADIUS_M
+    revisit_path_m: float = REVISIT_MIN_PATH_M
 
 
 def matrix_cases(sensors: Sequence[str], routes: Sequence[str],
@@ -124,38 +153,47 @@ def indoor_case(fine: bool = False) -> Case:
     over = {'verify_voxel_size': 0.25, 'verify_coarse_voxel_size': 0.75} if fine else {}
     return Case('avia_like/handheld/room' + ('@0.25m' if fine else ''), 'avia_like',
                 'handheld', 'room', 'avia.yaml', overrides=over, radius=1.5,
-                max_heading_deg=45.0)
+                max_heading_deg=45.0, revisit_radius=1.5, revisit_path_m=8.0)
 
 
 ROOM_SENSOR = avia_like(min_range=0.5, mount_height=1.4)
 
 
-def case_scans(case: Case, seed: int, scans: int | None) -> Any:
-    """``(points, stamp_ns, pose)`` of the case's drive (or walk), in order."""
+def case_scans(case: Case, seed: int, scans: int | None, drift: str = 'default') -> Any:
+    """``(points, stamp_ns, pose, odom)`` of the case's drive (or walk), in order: ``odom``
+    the drifting odometry's pose (``drift``: a key of :data:`DRIFTS`)."""
     if case.scene != 'room':
         drive = {'block': DEMO_DEFAULTS['block'], 'spacing': DEMO_DEFAULTS['spacing'],
-                 'route': case.route, 'scene': case.scene, **case.drive}
+                 'route': case.route, 'scene': case.scene, **case.drive, **DRIFTS[drift]}
         for scan in simulate(seed=seed, sensor=DEMO_SENSORS[case.sensor], num_scans=scans,
                              **drive):
-            yield scan.points, scan.stamp_ns, scan.pose
+            yield scan.points, scan.stamp_ns, scan.pose, scan.odom
         return
     room = Room()
     scene, walk = build_room(room, seed), handheld_walk(room, seed)
     model = ROOM_SENSOR
+    model_drift = DriveConfig(**DRIFTS[drift]).drift
+    assert model_drift is not None
+    noise = np.random.default_rng([seed, 0, 0x0D0]).standard_normal((len(walk), 3))
+    odom_xy, odom_yaw = drift_planar(walk.xy, walk.yaw, model_drift, noise)
     for i in range(len(walk) if scans is None else min(scans, len(walk))):
         x, y, yaw = float(walk.xy[i, 0]), float(walk.xy[i, 1]), float(walk.yaw[i])
         cloud = cast_scan(scene, model, x, y, yaw, np.random.default_rng([seed, i, 0x1D4]))
         # A walking pace: a scan every 0.25 m at 1 m/s.
-        yield cloud[:, :3], START_NS + i * 250_000_000, pose_matrix(x, y, model.mount_height,
-                                                                     yaw)
+        yield (cloud[:, :3], START_NS + i * 250_000_000,
+               pose_matrix(x, y, model.mount_height, yaw),
+               pose_matrix(float(odom_xy[i, 0]), float(odom_xy[i, 1]), model.mount_height,
+                           float(odom_yaw[i])))
 
 
-def case_config(case: Case, odom_check: bool = False) -> SolidConfig:
+def case_config(case: Case, odom_check: bool = False,
+                sets: dict[str, Any] | None = None) -> SolidConfig:
     """The shipped preset with the case's overrides (and the sensor's own vertical FOV);
-    the odometry check off unless ``odom_check``."""
+    the odometry check off unless ``odom_check``; then ``sets``."""
     over = dict(case.overrides)
     if not odom_check:
         over['odom_check_drift'] = 0.0
+    over.update(sets or {})
     if case.sensor in OWN_VERTICAL_FOV:
         model = DEMO_SENSORS[case.sensor]
         over.update(fov_up_deg=model.fov_up_deg, fov_down_deg=model.fov_down_deg)
@@ -172,24 +210,46 @@ class Outcome:
     reasons: dict[str, int]
     seconds: float
     rows: list[dict[str, Any]]
+    verify_ms: list[float] = field(default_factory=list)
+    odometry: str = 'reference'
 
 
-def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None) -> Outcome:
-    """Replay one simulated drive through the detector with ``cfg`` and score its published
-    loops."""
-    det = LoopDetector(cfg)
+def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None,
+             odometry: str = 'reference', drift: str = 'default') -> Outcome:
+    """Replay one simulated drive with ``cfg`` and score its published loops: through the
+    detector fed the reference poses (``odometry`` 'reference'), or through the loop closure
+    with the back end, fed the drifting odometry ('drift')."""
+    closure = None
+    if odometry == 'drift':
+        closure = LoopClosure(LoopDetector(cfg.replace(backend=True)))
+        det = closure.detector
+    else:
+        det = LoopDetector(cfg)
     poses: list[np.ndarray] = []
     attempts: list[list[LoopCandidate]] = []
     published: set[int] = set()
+    verify_ms: list[float] = []
     t0 = time.perf_counter()
-    for points, stamp_ns, pose in case_scans(case, seed, scans):
-        res = det.process(points, stamp_ns, pose)
+    for points, stamp_ns, pose, odom in case_scans(case, seed, scans, drift):
+        if closure is not None:
+            res = closure.process(points, stamp_ns, OdomSample(stamp_ns, odom)).scan
+        else:
+            res = det.process(points, stamp_ns, pose)
         if res.keyframe:
             poses.append(pose)
             attempts.append(list(res.attempts))
             published.update(id(c) for c in res.loops)
+            verify_ms.append(res.times.verify)
     seconds = time.perf_counter() - t0
-    ref = np.asarray(poses)
+    scores, rows = score_case(case, cfg, np.asarray(poses), attempts, published)
+    return Outcome(case, len(poses), scores, dict(det.reasons), seconds, rows, verify_ms,
+                   odometry)
+
+
+def score_case(case: Case, cfg: SolidConfig, ref: np.ndarray,
+               attempts: list[list[LoopCandidate]], published: set[int]
+               ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The published loops' scores (with the revisit recall) and every candidate's row."""
     truth = ground_truth(ref[:, :3, 3], radius=case.radius,
                          exclude_frames=cfg.exclude_recent_frames, rotations=ref[:, :3, :3],
                          max_heading_deg=case.max_heading_deg)
@@ -200,10 +260,11 @@ def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None) -> Outc
             te, re_ = pose_error(c.matrix(), np.linalg.solve(m, q))
             gd = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
             rec = LoopRecord(c.query_index, c.match_index, c.match_session, id(c) in published,
-                             c.verified, c.reason, c.overlap, c.distance, te, re_, gd)
+                             c.verified, c.reason, c.overlap, c.distance, te, re_, gd, c.source)
             records.append(rec)
             rows.append({'query': c.query_index, 'match': c.match_index,
                          'published': int(rec.published), 'reason': c.reason,
+                         'source': c.source,
                          'correct': int(rec.correct(MAX_ERROR_M, MAX_ERROR_DEG)),
                          'true_place': int(gd <= case.radius), 'gt_distance_m': gd,
                          'trans_err_m': te, 'rot_err_deg': re_, 'distance': c.distance,
@@ -212,7 +273,12 @@ def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None) -> Outc
                          'spread': c.spread})
     scores = score_loops(records, truth.has_loop, max_error_m=MAX_ERROR_M,
                          max_error_deg=MAX_ERROR_DEG)
-    return Outcome(case, len(poses), scores, dict(det.reasons), seconds, rows)
+    revisiting = revisits(ref[:, :3, 3], radius=case.revisit_radius,
+                          min_path_m=case.revisit_path_m, rotations=ref[:, :3, :3],
+                          max_heading_deg=case.max_heading_deg)
+    scores['revisits'] = revisit_recall(records, revisiting, max_error_m=MAX_ERROR_M,
+                                        max_error_deg=MAX_ERROR_DEG)
+    return scores, rows
 
 
 def _fmt(value: float | None, spec: str) -> str:
@@ -221,18 +287,24 @@ def _fmt(value: float | None, spec: str) -> str:
 
 
 HEADER = (f'{"case":44s} {"kf":>5s} {"pos":>5s} {"pub":>4s} {"ok":>4s} {"false":>5s} '
-          f'{"prec":>5s} {"recall":>6s} {"t_med":>6s} {"r_med":>6s} {"s":>5s}  verdicts')
+          f'{"prec":>5s} {"recall":>6s} {"revis":>5s} {"rv_rec":>6s} {"graph":>5s} '
+          f'{"t_med":>6s} {"r_med":>6s} {"v_p50":>5s} {"v_p95":>5s} {"s":>5s}  verdicts')
 
 
 def row_line(o: Outcome) -> str:
     """One table line."""
     s = o.scores
+    rv = s['revisits']
+    graph = s['by_source'].get('graph', {}).get('published', 0)
+    v = np.asarray([t for t in o.verify_ms if math.isfinite(t)] or [math.nan])
     verdicts = ' '.join(f'{k}={v}' for k, v in sorted(o.reasons.items(), key=lambda kv: -kv[1]))
     return (f'{o.case.name:44s} {o.keyframes:5d} {s["queries_with_true_loop"]:5d} '
             f'{s["published"]:4d} {s["correct"]:4d} {s["false"]:5d} '
             f'{_fmt(s["precision"], ".3f"):>5s} {_fmt(s["recall"], ".3f"):>6s} '
+            f'{rv["revisiting"]:5d} {_fmt(rv["recall"], ".3f"):>6s} {graph:5d} '
             f'{_fmt(s["trans_err_m"]["median"], ".3f"):>6s} '
-            f'{_fmt(s["rot_err_deg"]["median"], ".2f"):>6s} {o.seconds:5.0f}  {verdicts}')
+            f'{_fmt(s["rot_err_deg"]["median"], ".2f"):>6s} '
+            f'{np.median(v):5.1f} {np.percentile(v, 95):5.1f} {o.seconds:5.0f}  {verdicts}')
 
 
 def verdict(o: Outcome) -> list[str]:
@@ -257,8 +329,18 @@ def _write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
         w.writerows(rows)
 
 
-def _job(args: tuple[Case, SolidConfig, int, int | None]) -> Outcome:
+def _job(args: tuple[Case, SolidConfig, int, int | None, str, str]) -> Outcome:
     return run_case(*args)
+
+
+def _sets(items: list[str]) -> dict[str, Any]:
+    import yaml
+
+    out = {}
+    for item in items:
+        key, _, text = item.partition('=')
+        out[key.strip()] = yaml.safe_load(text)
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -278,6 +360,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument('--odom-check', action='store_true',
                    help="keep the preset's odometry check (off by default: the simulated "
                    'odometry is perfect)')
+    p.add_argument('--odometry', choices=('reference', 'drift'), default='reference',
+                   help='feed the reference poses to the detector (default), or the drifting '
+                        'odometry to the loop closure with the back end on')
+    p.add_argument('--drift', choices=tuple(DRIFTS), default='default',
+                   help="with --odometry drift: the simulator's default model (about 1.5 %% "
+                        'of the path) or strong (about 5 %%)')
+    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='override a setting of every case (repeatable)')
     args = p.parse_args(argv)
 
     def pick(text: str, allowed: Sequence[str], what: str) -> list[str]:
@@ -293,13 +383,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     cases = matrix_cases(pick(args.sensors, SENSORS, 'sensor'),
                          pick(args.routes, ROUTES, 'route'),
                          pick(args.scenes, SCENES, 'scene')) + [extras[n] for n in chosen]
+    sets = _sets(args.set)
     print(f'seed {args.seed}, scans {args.scans or "all"}, 512 points per ring for hdl64 and '
           f'ouster_like; correct = pose within {MAX_ERROR_M:g} m / {MAX_ERROR_DEG:g} deg; '
-          f'true loop = earlier keyframe within {RADIUS:g} m outside the exclusion window',
+          f'true loop = earlier keyframe within {RADIUS:g} m outside the exclusion window; '
+          f'revisit = earlier keyframe within {REVISIT_RADIUS_M:g} m after '
+          f'{REVISIT_MIN_PATH_M:g} m; odometry {args.odometry}'
+          + (f' ({args.drift}, back end on)' if args.odometry == 'drift' else '')
+          + f'; odometry check {"on" if args.odom_check else "off"}'
+          + (f'; set {sets}' if sets else '') + f'; load average {os.getloadavg()[0]:.1f}',
           flush=True)
     print(HEADER, flush=True)
     # Presets are read once, up front: the run sees one version of the files.
-    jobs = [(c, case_config(c, args.odom_check), args.seed, args.scans) for c in cases]
+    jobs = [(c, case_config(c, args.odom_check, sets), args.seed, args.scans, args.odometry,
+             args.drift) for c in cases]
     if args.jobs > 1:
         from multiprocessing import Pool
 
@@ -317,8 +414,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     misses = {o.case.name: verdict(o) for o in outcomes if verdict(o)}
     total = Counter[str]()
     for o in outcomes:
-        total.update({'published': o.scores['published'], 'false': o.scores['false']})
-    print(f'total: {total["published"]} published, {total["false"]} false; '
+        total.update({'published': o.scores['published'], 'false': o.scores['false'],
+                      'graph': o.scores['by_source'].get('graph', {}).get('published', 0)})
+    print(f'total: {total["published"]} published ({total["graph"]} by the pose graph), '
+          f'{total["false"]} false; load average {os.getloadavg()[0]:.1f}; '
           + ('every case meets the goal' if not misses else
              'short of the goal: ' + '; '.join(f'{k}: {", ".join(v)}'
                                                for k, v in misses.items())))
@@ -329,7 +428,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(
             [{'case': o.case.name, 'keyframes': o.keyframes, 'seconds': o.seconds,
-              'reasons': o.reasons, 'shortfalls': verdict(o), **o.scores} for o in outcomes],
+              'reasons': o.reasons, 'shortfalls': verdict(o), 'verify_ms': o.verify_ms,
+              'odometry': o.odometry, **o.scores} for o in outcomes],
             indent=1))
     return 1 if misses else 0
 
