@@ -42,6 +42,8 @@ from solid_ros.formats.pointcloud2 import FLOAT32, FLOAT64, cloud_to_xyz
 from solid_ros.ros.cli import check_parameter_files, scan_arguments
 from solid_ros.tools import replay
 
+pytestmark = pytest.mark.slow  # hundreds of malformed files, bags and processes
+
 SEED = 20261122
 BIN = Path(sys.executable).parent
 CFG = SolidConfig(exclude_recent_frames=2, capacity=64)

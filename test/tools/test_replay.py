@@ -115,6 +115,7 @@ def test_best_matches_cover_rejected_queries(bags: dict[str, Path]) -> None:
     assert result.metrics is not None and result.metrics['f1_max'] == 1.0
 
 
+@pytest.mark.slow
 def test_outputs(tmp_path: Path, bags: dict[str, Path]) -> None:
     out = tmp_path / 'out'
     result = replay(bags['sqlite3'], TEST_CFG, out_dir=out, progress='quiet')
@@ -139,6 +140,7 @@ def test_outputs(tmp_path: Path, bags: dict[str, Path]) -> None:
         assert data[:8] == b'\x89PNG\r\n\x1a\n' and len(data) > 10_000
 
 
+@pytest.mark.slow
 def test_reference_from_pose_files(tmp_path: Path, bags: dict[str, Path],
                                    scans: list[tuple[np.ndarray, int, np.ndarray]]) -> None:
     kitti = tmp_path / 'poses.txt'
@@ -230,6 +232,7 @@ def test_help_explains_every_option(capsys: pytest.CaptureFixture[str]) -> None:
         assert action.help, action.dest
 
 
+@pytest.mark.slow
 def test_cli_runs_and_prints_summary(tmp_path: Path, bags: dict[str, Path],
                                      capsys: pytest.CaptureFixture[str]) -> None:
     params = tmp_path / 'p.yaml'
@@ -549,6 +552,7 @@ def sim_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_cloud_bag(tmp_path_factory.mktemp('sim') / 'bag', items, 'mcap')
 
 
+@pytest.mark.slow
 def test_published_loops_carry_a_correct_relative_pose(tmp_path: Path, sim_bag: Path) -> None:
     out = tmp_path / 'out'
     result = replay(sim_bag, SIM_CFG, out_dir=out, progress='quiet')
