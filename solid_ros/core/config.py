@@ -210,6 +210,10 @@ class SolidConfig(_Schema):
                              low=1, high=1000)
     session_id: int = _p(0, 'Session id stored with every scan of this run', low=0,
                          high=2**31 - 1, read_only=True)
+    peer_capacity: int = _p(50000, "Stored scans of peer robots, in a ring of their own (the "
+                            "oldest peer scan is evicted beyond this; a peer never evicts this "
+                            "robot's scans; 0 stores none)", low=0, high=10_000_000,
+                            read_only=True)
 
     # Query and acceptance (tunable at runtime).
     distance_threshold: float = _p(0.03, 'Accept a loop when cosine distance is below this',
