@@ -354,6 +354,30 @@ class NodeConfig(_Schema):
                                  'candidate is dropped', low=0.01, high=60.0)
     peer_catchup: int = _p(2000, 'Most stored descriptors sent to a robot that joins late '
                            '(and asked for at start)', low=0, high=1_000_000, read_only=True)
+    peer_key_file: str = _p('', 'File holding the fleet key (16+ bytes, shared by the robots, '
+                            'never sent or logged): every peer message is authenticated with '
+                            'HMAC-SHA256 and others are refused (empty = unauthenticated, for '
+                            'a trusted ROS domain)', read_only=True)
+    peer_allowlist: str = _p('', "Robot ids accepted as peers, e.g. '1,2,3' (empty = any)",
+                             read_only=True)
+    peer_max_robots: int = _p(32, 'Peer robots tracked; the least recently heard is dropped '
+                              'for a new one', low=1, high=100_000, read_only=True)
+    peer_replay_window_sec: float = _p(60.0, 'With a fleet key: largest difference between a '
+                                       "peer message's stamp and this clock (replays and "
+                                       'unsynchronised clocks are refused)', low=1.0,
+                                       high=86400.0, read_only=True)
+    peer_descriptor_rate: float = _p(50.0, 'Descriptors a second accepted from one robot '
+                                     '(beyond a burst of peer_catchup + 100)', low=0.1,
+                                     high=1e6, read_only=True)
+    peer_request_rate: float = _p(100.0, 'Cloud requests a second answered for one robot '
+                                  '(burst 500; 200 a second for all together)', low=0.1,
+                                  high=1e6, read_only=True)
+    peer_max_cloud_points: int = _p(100_000, 'Largest peer keyframe cloud accepted, points '
+                                    '(bigger replies are refused unread)', low=100,
+                                    high=2_000_000, read_only=True)
+    peer_backoff_sec: float = _p(30.0, 'A peer that lets 3 cloud requests in a row time out is '
+                                 'not asked for this long (doubling while it stays silent)',
+                                 low=1.0, high=3600.0, read_only=True)
 
 
 def param_specs() -> tuple[ParamSpec, ...]:

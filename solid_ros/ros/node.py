@@ -52,6 +52,7 @@ from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidE
 from solid_ros.core.odometry import OdomSample
 from solid_ros.core.persistence import check_save_target, remove_stale_temporaries
 from solid_ros.core.stamps import join_stamp, seconds_to_ns
+from solid_ros.formats.peers import key_id
 from solid_ros.formats.pointcloud2 import cloud_to_xyz
 from solid_ros.formats.poses import PoseError, odometry_to_pose
 from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
@@ -60,6 +61,7 @@ from solid_ros.ros.loop_output import LoopOutput
 from solid_ros.ros.markers import LoopMarkers
 from solid_ros.ros.odom_wait import OdometryWait
 from solid_ros.ros.params import apply_changes, declare_all
+from solid_ros.ros.peer_guard import key_file_is_private, load_fleet_key
 from solid_ros.ros.peers import PeerLink
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Stages, Verified
@@ -107,7 +109,11 @@ class SolidNode(Node):
         self.create_timer(cfg.diagnostics_period_sec, self._publish_diagnostics)
         self.create_timer(_HEALTH_PERIOD_SEC, self._check_health)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._peers = self._start_peers() if cfg.peers else None
+        try:
+            self._peers = self._start_peers() if cfg.peers else None
+        except BaseException:
+            super().destroy_node()
+            raise
         self._loop_output = LoopOutput(
             self._pub_cands.publish, self.get_logger(), self.stats, self._shared, self._markers,
             self._solid_cfg.session_id, self._peers.robots if self._peers is not None else ())
@@ -144,12 +150,26 @@ class SolidNode(Node):
                                                       odom_qos)
 
     def _start_peers(self) -> PeerLink:
+        """The peer exchange; raises ConfigError for a fleet key file it cannot use."""
         cfg, solid = self._node_cfg, self._solid_cfg
-        peers = PeerLink(self, solid.session_id, solid.fingerprint(), cfg.peer_timeout_sec,
-                         cfg.peer_catchup, add_keyframe=self._shared.add_peer_keyframe,
+        key = load_fleet_key(cfg.peer_key_file) if cfg.peer_key_file else None
+        log = self.get_logger()
+        if key is None:
+            log.warning('peers: no peer_key_file, so peer messages are not authenticated: any '
+                        'participant on this ROS domain can send descriptors and clouds in '
+                        "another robot's name (fine on a trusted domain; see the README, "
+                        'Multi-robot loop closure: trust)')
+        else:
+            log.info(f'peers: messages authenticated with the fleet key in '
+                     f'{cfg.peer_key_file} (key id {key_id(key)})')
+            if not key_file_is_private(cfg.peer_key_file):
+                log.warning(f'peers: {cfg.peer_key_file} can be read by other users; '
+                            f'chmod 600 {cfg.peer_key_file}')
+        peers = PeerLink(self, solid.session_id, solid.fingerprint(), cfg, key,
+                         add_keyframe=self._shared.add_peer_keyframe,
                          own_cloud=self._shared.own_cloud,
                          own_keyframes=self._shared.own_keyframes)
-        self._shared.set_fetch_cloud(peers.fetch)
+        self._shared.set_cloud_source(peers)
         peers.start()
         return peers
 
@@ -262,13 +282,18 @@ class SolidNode(Node):
             response.success, response.message = False, 'database_save_path is empty'
             return response
         try:
-            size = self._shared.save(path)
+            size, backup = self._shared.save(path)
         except (SolidError, OSError) as err:
             response.success, response.message = False, f'save failed: {err}'
             self.get_logger().error(response.message)
             return response
         response.success, response.message = True, f'saved {size} scans to {path}'
-        self.get_logger().info(response.message)
+        if backup is not None:
+            response.message += (f'; it replaced a database with more scans, kept as '
+                                 f'{backup}')
+            self.get_logger().warning(response.message)
+        else:
+            self.get_logger().info(response.message)
         return response
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:

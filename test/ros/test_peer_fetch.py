@@ -1,0 +1,74 @@
+"""CloudFetches without ROS: replies must match their request; silent peers are backed off."""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+
+import numpy as np
+
+from solid_ros.core.registration import KeyframeCloud
+from solid_ros.formats.peers import CloudReply
+from solid_ros.ros.peer_fetch import MAX_TIMEOUTS, CloudFetches, Pending
+
+CLOUD = KeyframeCloud(np.ones((10, 3), np.float32), 5)
+
+
+def make(timeout: float = 0.05, heard: dict[int, float] | None = None,
+         ) -> tuple[CloudFetches, Counter[str], list[float]]:
+    counts: Counter[str] = Counter()
+    now = [0.0]
+    seen = heard if heard is not None else {}
+
+    def count(kind: str, n: int) -> None:
+        counts[kind] += n
+
+    f = CloudFetches(timeout, 30.0, lambda r: seen.get(r, -float('inf')), count,
+                     clock=lambda: now[0])
+    return f, counts, now
+
+
+def test_only_a_reply_matching_owner_index_and_stamp_is_taken() -> None:
+    f, counts, _ = make(timeout=5.0)
+    p = f.start(4, 10, 777)
+    assert isinstance(p, Pending) and f.pending == 1
+    forged = [CloudReply(3, 0, 10, p.request_id, 777, CLOUD),   # another owner
+              CloudReply(4, 0, 11, p.request_id, 777, CLOUD),   # another keyframe
+              CloudReply(4, 0, 10, p.request_id, 778, CLOUD),   # another stamp
+              CloudReply(4, 0, 10, p.request_id ^ 1, 777, CLOUD)]  # another request
+    assert [f.deliver(r) for r in forged] == [False] * 4
+    assert counts['replies_mismatched'] == 3 and counts['late_replies'] == 1
+    real = CloudReply(4, 0, 10, p.request_id, 777, CLOUD)
+    assert f.deliver(real) and not f.deliver(real)  # the first one only
+    assert f.finish(p) is CLOUD and f.pending == 0
+    # Request ids are random, not a count a bystander can predict.
+    ids = {f.start(4, i, 0).request_id for i in range(50)}  # type: ignore[union-attr]
+    assert len(ids) == 50 and not ids <= set(range(1000))
+
+
+def test_a_silent_peer_is_backed_off_after_a_few_time_outs() -> None:
+    heard = {4: 0.0}
+    f, counts, now = make(heard=heard)
+    reasons = []
+    for _ in range(MAX_TIMEOUTS):
+        heard[4] = now[0] = now[0] + 1.0  # it keeps publishing descriptors...
+        reasons.append(f.finish(f.start(4, 1, 1)))  # ...but never answers
+    assert reasons == ['peer_timeout'] * MAX_TIMEOUTS and counts['peers_backed_off'] == 1
+    heard[4] = now[0] = now[0] + 1.0
+    assert f.start(4, 1, 1) == 'peer_gone'  # skipped during the back-off, no wait
+    now[0] += 31.0
+    heard[4] = now[0]
+    assert f.finish(f.start(4, 1, 1)) == 'peer_timeout'  # one probe, then a longer back-off
+    heard[4] = now[0] = now[0] + 31.0
+    assert f.start(4, 1, 1) == 'peer_gone'
+    # A robot that timed out and was not heard from since has left: not asked again.
+    assert f.finish(f.start(5, 1, 1)) == 'peer_timeout'
+    assert f.start(5, 1, 1) == 'peer_gone'
+
+
+def test_a_reply_arriving_while_waiting_wakes_the_collector() -> None:
+    f, counts, _ = make(timeout=30.0)
+    p = f.start(2, 3, 4)
+    assert isinstance(p, Pending)
+    threading.Timer(0.05, f.deliver, [CloudReply(2, 0, 3, p.request_id, 4, None)]).start()
+    assert f.finish(p) == 'peer_evicted' and counts['clouds_evicted'] == 1
