@@ -354,6 +354,10 @@ class NodeConfig(_Schema):
                                  'candidate is dropped', low=0.01, high=60.0)
     peer_catchup: int = _p(2000, 'Most stored descriptors sent to a robot that joins late '
                            '(and asked for at start)', low=0, high=1_000_000, read_only=True)
+    max_points_per_cloud: int = _p(500_000, 'PointCloud2 with more points are thinned to '
+                                   'this by keeping every k-th point (counted as downsampled): '
+                                   'bounds time and memory of a huge cloud', low=1000,
+                                   high=100_000_000, read_only=True)
     peer_key_file: str = _p('', 'File holding the fleet key (16+ bytes, shared by the robots, '
                             'never sent or logged): every peer message is authenticated with '
                             'HMAC-SHA256 and others are refused (empty = unauthenticated, for '

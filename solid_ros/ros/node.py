@@ -10,7 +10,12 @@ with ``use_odom``, ``odom`` (nav_msgs/Odometry); publishes ``~/loop_candidates``
 Health (logged as throttled warnings and raised to WARN on /diagnostics while it lasts; the
 windows are wall-clock seconds; see :mod:`solid_ros.ros.health`): no cloud on the resolved
 points topic, or with ``use_odom`` no odometry, for ``SILENCE_SEC``; odometry on another
-clock; clouds rejected, dropped or failed recently.
+clock; clouds rejected, dropped or failed recently; odometry refused (not finite) or cloud
+stamps that cannot be trusted (zero, repeated, going back: :mod:`solid_ros.ros.stamp_guard`
+then keeps the detector in arrival order).
+
+Bounds on what any participant can send: a cloud beyond ``max_points_per_cloud`` is thinned
+(counted); memory a huge message took is given back (:mod:`solid_ros.ros.memory`).
 
 Threading (:mod:`solid_ros.ros.stages`): the subscription callback only decodes (zero-copy)
 or rejects a cloud and hands it to a bounded queue; when the queue is full the oldest waiting
@@ -28,6 +33,7 @@ consumer of the whole flow (a pose graph) takes it there too.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -59,12 +65,14 @@ from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
 from solid_ros.ros.health import WARN_THROTTLE_SEC, InputHealth
 from solid_ros.ros.loop_output import LoopOutput
 from solid_ros.ros.markers import LoopMarkers
+from solid_ros.ros.memory import HeapTrim
 from solid_ros.ros.odom_wait import OdometryWait
 from solid_ros.ros.params import apply_changes, declare_all
 from solid_ros.ros.peer_guard import key_file_is_private, load_fleet_key
 from solid_ros.ros.peers import PeerLink
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Stages, Verified
+from solid_ros.ros.stamp_guard import StampGuard
 from solid_ros.ros.stats import NodeStats
 from solid_ros.runtime import tune_allocator, tune_thread_switching
 
@@ -96,6 +104,8 @@ class SolidNode(Node):
         cfg = self._node_cfg
         self._odom = (OdometryWait(seconds_to_ns(cfg.odom_tolerance_sec)) if cfg.use_odom
                       else None)
+        self._stamps = StampGuard()
+        self._trim = HeapTrim()
         self._create_topics()
         self._health = InputHealth(
             self._points_sub.topic_name, self._odom_sub.topic_name if cfg.use_odom else None,
@@ -168,7 +178,7 @@ class SolidNode(Node):
         peers = PeerLink(self, solid.session_id, solid.fingerprint(), cfg, key,
                          add_keyframe=self._shared.add_peer_keyframe,
                          own_cloud=self._shared.own_cloud,
-                         own_keyframes=self._shared.own_keyframes)
+                         own_keyframes=self._shared.own_keyframes, note_size=self._trim.note)
         self._shared.set_cloud_source(peers)
         peers.start()
         return peers
@@ -224,6 +234,13 @@ class SolidNode(Node):
 
     def _on_points(self, msg: PointCloud2) -> None:
         self._health.cloud_received()
+        self._trim.note(len(msg.data))
+        header = _header_ns(msg)
+        stamp, problem = self._stamps.take(header)
+        if problem is not None:
+            line = self._health.untrusted_stamp(problem, header)
+            if line is not None:
+                self.get_logger().warning(line)
         try:
             points = cloud_to_xyz(msg)
             if points.shape[0] == 0:
@@ -231,7 +248,21 @@ class SolidNode(Node):
         except CloudError as err:
             self._stages.reject(str(err))
             return
-        self._stages.put((points, _header_ns(msg)))
+        cap = self._node_cfg.max_points_per_cloud
+        if points.shape[0] > cap:
+            points = self._thin(points, cap)
+        self._stages.put((points, stamp))
+
+    def _thin(self, points: Any, cap: int) -> Any:
+        """Every k-th point of a cloud beyond ``max_points_per_cloud`` (a copy, so the huge
+        message is freed when the callback returns)."""
+        step = -(-points.shape[0] // cap)
+        self.stats.downsampled += 1
+        self.get_logger().warning(
+            f'PointCloud2 of {points.shape[0]} points on {self._points_sub.topic_name} thinned '
+            f'to every {step}th point (max_points_per_cloud {cap}; {self.stats.downsampled} '
+            'so far)', throttle_duration_sec=WARN_THROTTLE_SEC)
+        return points[::step].copy()
 
     def _on_odom(self, msg: Odometry) -> None:
         assert self._odom is not None
@@ -239,8 +270,9 @@ class SolidNode(Node):
             self._odom.add(_header_ns(msg), odometry_to_pose(msg), msg.pose.covariance,
                            msg.header.frame_id)
         except PoseError as err:
-            self.get_logger().warning(f'odometry message skipped: {err}',
-                                      throttle_duration_sec=WARN_THROTTLE_SEC)
+            line = self._health.odom_rejected(str(err))
+            if line is not None:
+                self.get_logger().warning(line)
             return
         self._health.odom_received()
 
@@ -249,17 +281,23 @@ class SolidNode(Node):
 
     def _pose_for(self, stamp_ns: int) -> OdomSample | None:
         """Odometry within ``odom_tolerance_sec`` of the cloud (waits briefly if it lags,
-        while someone publishes odometry)."""
+        while someone publishes odometry); the newest odometry for a cloud whose stamp
+        cannot be trusted."""
         if self._odom is None:
             return None
+        header_ns, trusted = self._stamps.source(stamp_ns)
+        if not trusted:
+            return self._odom.newest()
         publishing = self.count_publishers(self._odom_sub.topic_name) > 0
-        sample, gap_ns = self._odom.pair(stamp_ns, wait=publishing)
+        sample, gap_ns = self._odom.pair(header_ns, wait=publishing)
         if gap_ns is not None:
             self._health.odom_paired(gap_ns)
         return sample
 
     def _check_health(self) -> None:
-        """Log a problem when it appears and every ``REPEAT_SEC`` while it lasts."""
+        """Log a problem when it appears and every ``REPEAT_SEC`` while it lasts (and give
+        back the memory of a huge message)."""
+        self._trim.maybe_trim()
         warnings, recovered = self._health.check()
         for line in warnings:
             self.get_logger().warning(line)
@@ -271,7 +309,12 @@ class SolidNode(Node):
     def _hand_on(self, verified: Verified) -> None:
         """Every verified keyframe, in keyframe order, on the verify thread (the describe
         thread with ``verify`` off): the one place where each keyframe's result and paired
-        odometry go. A consumer of the whole flow (a pose graph) takes ``verified`` here."""
+        odometry go. A consumer of the whole flow (a pose graph) takes ``verified`` here.
+        Its stamps are the clouds' header stamps again (see :mod:`~solid_ros.ros.stamp_guard`).
+        """
+        if self._stamps.shifted:
+            verified = dataclasses.replace(verified, result=self._stamps.restore(
+                verified.result, self._solid_cfg.session_id))
         self._loop_output.take(verified)
 
     # -- services and diagnostics -----------------------------------------------------------
