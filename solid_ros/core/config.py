@@ -358,6 +358,10 @@ class NodeConfig(_Schema):
                                    'this by keeping every k-th point (counted as downsampled): '
                                    'bounds time and memory of a huge cloud', low=1000,
                                    high=100_000_000, read_only=True)
+    allow_runtime_weakening: bool = _p(False, 'Accept runtime parameter changes that weaken '
+                                       'loop acceptance or gating (any participant on the ROS '
+                                       'domain can send them); changes that make the node '
+                                       'stricter are always accepted', read_only=True)
     peer_key_file: str = _p('', 'File holding the fleet key (16+ bytes, shared by the robots, '
                             'never sent or logged): every peer message is authenticated with '
                             'HMAC-SHA256 and others are refused (empty = unauthenticated, for '

@@ -15,7 +15,9 @@ stamps that cannot be trusted (zero, repeated, going back: :mod:`solid_ros.ros.s
 then keeps the detector in arrival order).
 
 Bounds on what any participant can send: a cloud beyond ``max_points_per_cloud`` is thinned
-(counted); memory a huge message took is given back (:mod:`solid_ros.ros.memory`).
+(counted); memory a huge message took is given back (:mod:`solid_ros.ros.memory`); runtime
+parameter changes that weaken the node are refused unless ``allow_runtime_weakening``
+(:mod:`solid_ros.ros.params`), and every accepted one is logged with its old and new value.
 
 Threading (:mod:`solid_ros.ros.stages`): the subscription callback only decodes (zero-copy)
 or rejects a cloud and hands it to a bounded queue; when the queue is full the oldest waiting
@@ -67,7 +69,7 @@ from solid_ros.ros.loop_output import LoopOutput
 from solid_ros.ros.markers import LoopMarkers
 from solid_ros.ros.memory import HeapTrim
 from solid_ros.ros.odom_wait import OdometryWait
-from solid_ros.ros.params import apply_changes, declare_all
+from solid_ros.ros.params import apply_changes, changed, declare_all
 from solid_ros.ros.peer_guard import key_file_is_private, load_fleet_key
 from solid_ros.ros.peers import PeerLink
 from solid_ros.ros.shared_detector import SharedDetector
@@ -217,11 +219,16 @@ class SolidNode(Node):
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         try:
-            solid, node_cfg = apply_changes(self._solid_cfg, self._node_cfg, params)
+            solid, node_cfg = apply_changes(self._solid_cfg, self._node_cfg, params,
+                                            self._node_cfg.allow_runtime_weakening)
             if solid != self._solid_cfg:
                 self._shared.reconfigure(solid)
         except ConfigError as err:
+            self.get_logger().warning(f'parameter change refused: {err}',
+                                      throttle_duration_sec=WARN_THROTTLE_SEC)
             return SetParametersResult(successful=False, reason=str(err))
+        for name, old, new in changed(self._solid_cfg, self._node_cfg, solid, node_cfg):
+            self.get_logger().info(f'parameter {name} changed at runtime: {old!r} -> {new!r}')
         self._solid_cfg, self._node_cfg = solid, node_cfg
         self._health.odom_tolerance_sec = node_cfg.odom_tolerance_sec
         if self._odom is not None:

@@ -113,6 +113,28 @@ def test_zero_stamps_are_reported_and_processed_in_arrival_order(
     assert len(logged) == 1, logged  # throttled
 
 
+def test_remote_parameter_changes_may_tighten_but_not_weaken(
+        harness: Callable[..., Harness], capfd: pytest.CaptureFixture[str]) -> None:  # noqa: F811
+    h = harness(params_file=None)
+    cfg = h.node.solid_config
+    for name, value in (('distance_threshold', 0.5), ('verify_min_overlap', 0.0),
+                        ('verify_max_rmse', 1.0), ('odom_check_drift', 0.0),
+                        ('exclude_recent_frames', 0), ('keyframe_min_distance', 100.0),
+                        ('num_candidates', 50), ('peer_timeout_sec', 30.0)):
+        result = _set(h, name, value)
+        assert not result.successful, name
+        assert 'would weaken' in result.reason and 'allow_runtime_weakening' in result.reason
+    assert h.node.solid_config == cfg
+    assert not _set(h, 'allow_runtime_weakening', True).successful  # read-only
+    for name, value in (('distance_threshold', 0.02), ('verify_min_overlap', 0.5),
+                        ('odom_check_drift', 0.05)):
+        assert _set(h, name, value).successful, name
+    assert h.node.solid_config.distance_threshold == 0.02
+    assert h.node.solid_config.verify_min_overlap == 0.5
+    h.wait_for(lambda: 'parameter verify_min_overlap changed at runtime: 0.35 -> 0.5' in
+               capfd.readouterr().err, 'the change logged with old and new value', 10.0)
+
+
 def test_a_reset_then_save_keeps_the_saved_database_as_a_backup(
         harness: Callable[..., Harness], tmp_path: Path) -> None:  # noqa: F811
     db = tmp_path / 'map.npz'
