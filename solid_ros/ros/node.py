@@ -67,7 +67,7 @@ from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
 from solid_ros.ros.health import WARN_THROTTLE_SEC, InputHealth
 from solid_ros.ros.loop_output import LoopOutput
 from solid_ros.ros.markers import LoopMarkers
-from solid_ros.ros.memory import HeapTrim
+from solid_ros.ros.memory import LARGE_BYTES, HeapTrim, Renewal
 from solid_ros.ros.odom_wait import OdometryWait
 from solid_ros.ros.params import apply_changes, changed, declare_all
 from solid_ros.ros.peer_guard import key_file_is_private, load_fleet_key
@@ -107,10 +107,11 @@ class SolidNode(Node):
         self._odom = (OdometryWait(seconds_to_ns(cfg.odom_tolerance_sec)) if cfg.use_odom
                       else None)
         self._stamps = StampGuard()
-        self._trim = HeapTrim()
+        self._trim = HeapTrim(busy=lambda: not self._stages.wait_idle(0.0))
         self._create_topics()
         self._health = InputHealth(
-            self._points_sub.topic_name, self._odom_sub.topic_name if cfg.use_odom else None,
+            self._points.current.topic_name,
+            self._odom_sub.topic_name if cfg.use_odom else None,
             cfg.qos_reliability, cfg.odom_tolerance_sec, self.count_publishers)
         self.stats = self._health.stats
         self._markers = (LoopMarkers(cfg.marker_max_loops, self._pub_markers.publish,
@@ -153,7 +154,10 @@ class SolidNode(Node):
             history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL)) if cfg.marker_max_loops else None)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._points_sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
+        # Re-created after a cloud over max_points_per_cloud: frees what its reader keeps.
+        self._points = Renewal(
+            lambda: self.create_subscription(PointCloud2, 'points', self._on_points, qos),
+            self.destroy_subscription)
         if cfg.use_odom:
             # Deep enough that a burst of odometry is not dropped before pairing.
             odom_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
@@ -243,7 +247,8 @@ class SolidNode(Node):
         self._health.cloud_received()
         self._trim.note(len(msg.data))
         header = _header_ns(msg)
-        stamp, problem = self._stamps.take(header)
+        stamp, problem = self._stamps.take(
+            header, self._odom.newest if self._odom is not None else None)
         if problem is not None:
             line = self._health.untrusted_stamp(problem, header)
             if line is not None:
@@ -265,8 +270,9 @@ class SolidNode(Node):
         message is freed when the callback returns)."""
         step = -(-points.shape[0] // cap)
         self.stats.downsampled += 1
+        self._points.request()
         self.get_logger().warning(
-            f'PointCloud2 of {points.shape[0]} points on {self._points_sub.topic_name} thinned '
+            f'PointCloud2 of {points.shape[0]} points on {self._health.points_topic} thinned '
             f'to every {step}th point (max_points_per_cloud {cap}; {self.stats.downsampled} '
             'so far)', throttle_duration_sec=WARN_THROTTLE_SEC)
         return points[::step].copy()
@@ -288,13 +294,14 @@ class SolidNode(Node):
 
     def _pose_for(self, stamp_ns: int) -> OdomSample | None:
         """Odometry within ``odom_tolerance_sec`` of the cloud (waits briefly if it lags,
-        while someone publishes odometry); the newest odometry for a cloud whose stamp
-        cannot be trusted."""
+        while someone publishes odometry); for a cloud whose stamp cannot be trusted, the
+        odometry that was newest when it arrived."""
         if self._odom is None:
             return None
         header_ns, trusted = self._stamps.source(stamp_ns)
         if not trusted:
-            return self._odom.newest()
+            sample: OdomSample | None = self._stamps.hint(stamp_ns)
+            return sample
         publishing = self.count_publishers(self._odom_sub.topic_name) > 0
         sample, gap_ns = self._odom.pair(header_ns, wait=publishing)
         if gap_ns is not None:
@@ -304,6 +311,10 @@ class SolidNode(Node):
     def _check_health(self) -> None:
         """Log a problem when it appears and every ``REPEAT_SEC`` while it lasts (and give
         back the memory of a huge message)."""
+        if self._points.maybe_renew(idle=self._stages.wait_idle(0.0)):
+            self._trim.note(LARGE_BYTES)
+            self.get_logger().info('re-subscribed to the points topic to free the buffers of a '
+                                   'cloud over max_points_per_cloud')
         self._trim.maybe_trim()
         warnings, recovered = self._health.check()
         for line in warnings:

@@ -66,6 +66,7 @@ from solid_ros.formats.peers import (
     reply_bytes,
     reply_requester,
 )
+from solid_ros.ros.memory import LARGE_BYTES, Renewal
 from solid_ros.ros.peer_fetch import CloudFetches, Pending
 from solid_ros.ros.peer_guard import PeerGuard, Refused, parse_allowlist
 
@@ -136,10 +137,16 @@ class PeerLink:
         self._pub_desc = node.create_publisher(UInt8MultiArray, DESCRIPTOR_TOPIC, qos(100))
         self._pub_req = node.create_publisher(UInt8MultiArray, REQUEST_TOPIC, qos(100))
         self._pub_reply = node.create_publisher(UInt8MultiArray, REPLY_TOPIC, qos(10))
-        node.create_subscription(UInt8MultiArray, DESCRIPTOR_TOPIC, self._on_descriptor,
-                                 qos(1000))
-        node.create_subscription(UInt8MultiArray, REQUEST_TOPIC, self._on_request, qos(100))
-        node.create_subscription(UInt8MultiArray, REPLY_TOPIC, self._on_reply, qos(10))
+
+        def subscription(topic: str, handle: Callable[[Any], None], depth: int) -> Renewal:
+            return Renewal(lambda: node.create_subscription(UInt8MultiArray, topic, handle,
+                                                            qos(depth)),
+                           node.destroy_subscription)
+
+        # Each re-created after an oversized message (frees what its DDS reader keeps).
+        self._subs = {DESCRIPTOR_TOPIC: subscription(DESCRIPTOR_TOPIC, self._on_descriptor, 1000),
+                      REQUEST_TOPIC: subscription(REQUEST_TOPIC, self._on_request, 100),
+                      REPLY_TOPIC: subscription(REPLY_TOPIC, self._on_reply, 10)}
 
     @property
     def robots(self) -> PeerGuard:
@@ -173,6 +180,15 @@ class PeerLink:
         time discovery finds more of them (a request sent before they match is lost)."""
         if self.catchup:
             self.node.create_timer(_DISCOVERY_SEC, self._catch_up)
+        self.node.create_timer(1.0, self._renew)
+
+    def _renew(self) -> None:
+        for topic, sub in self._subs.items():
+            if sub.maybe_renew():
+                if self._note_size is not None:
+                    self._note_size(LARGE_BYTES)
+                self.node.get_logger().info(f're-subscribed to {topic} to free the buffers of '
+                                            'an oversized message')
 
     def _catch_up(self) -> None:
         matched = self._pub_req.get_subscription_count()
@@ -239,6 +255,7 @@ class PeerLink:
             self._note_size(len(data))
         if len(data) > max_bytes + _ENVELOPE:
             self.counts['oversized'] += 1
+            self._subs[topic].request()
             self._warn('oversized', f'{len(data)} bytes on {topic} (at most {max_bytes})')
             return None
         raw = bytes(data)
@@ -322,6 +339,8 @@ class PeerLink:
         if reply_requester(bytes(msg.data[:TAG_BYTES + 64])) not in (None, self.robot):
             if self._note_size is not None:
                 self._note_size(len(msg.data))
+            if len(msg.data) > reply_bytes(self.max_cloud_points) + _ENVELOPE:
+                self._subs[REPLY_TOPIC].request()
             return  # a reply to another robot: not even authenticated
         rep = self._receive(REPLY_TOPIC, msg, reply_bytes(self.max_cloud_points))
         if not isinstance(rep, CloudReply):

@@ -12,7 +12,8 @@ subscription callback) and gives the detector a stamp that always increases:
   1 ns), i.e. arrival order on the monotonic clock, and the offset becomes that stamp minus
   the header's, so the clouds after a jump keep their spacing and stay after the ones before.
 
-An untrusted cloud is paired with the newest odometry instead of the odometry of its stamp.
+An untrusted cloud is paired with the odometry that was newest when it arrived (``hint`` of
+:meth:`StampGuard.take`), instead of the odometry of its stamp.
 Published loops carry the header stamps again (:meth:`StampGuard.restore`), so a back end
 finds its keyframes; a saved database keeps the detector's stamps. Each switch of the offset
 is remembered (the newest ``MAX_SEGMENTS``) to translate back.
@@ -24,7 +25,9 @@ import bisect
 import dataclasses
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
+from typing import Any
 
 from solid_ros.core.detector import LoopCandidate, ScanResult
 from solid_ros.core.stamps import NS_PER_SEC
@@ -32,6 +35,7 @@ from solid_ros.core.stamps import NS_PER_SEC
 __all__ = ['StampGuard']
 
 MAX_SEGMENTS = 100_000
+MAX_HINTS = 4096  # untrusted clouds waiting for the describe stage
 
 
 class StampGuard:
@@ -53,10 +57,13 @@ class StampGuard:
         self._starts: list[int] = []
         self._offsets: list[int] = []
         self._untrusted: list[bool] = []
+        self._hints: OrderedDict[int, Any] = OrderedDict()
 
-    def take(self, header_ns: int) -> tuple[int, str | None]:
+    def take(self, header_ns: int, hint: Callable[[], Any] | None = None,
+             ) -> tuple[int, str | None]:
         """The detector stamp of a cloud that arrived now, and why its header stamp is not
-        trusted: None, ``'zero'``, ``'repeated'`` or ``'backward by N s'``."""
+        trusted: None, ``'zero'``, ``'repeated'`` or ``'backward by N s'``. For an untrusted
+        one ``hint()`` is called now and kept for :meth:`hint` (the newest odometry)."""
         now = self._clock()
         header = int(header_ns)
         with self._lock:
@@ -77,8 +84,18 @@ class StampGuard:
                 out = header if last_out is None else last_out + max(now - self._last_arrival,
                                                                      1)
                 self._switch(out, out - header, True)
+                if hint is not None:
+                    self._hints[out] = hint()
+                    while len(self._hints) > MAX_HINTS:
+                        self._hints.popitem(last=False)
             self._last_in, self._last_out, self._last_arrival = header, out, now
         return out, problem
+
+    def hint(self, stamp_ns: int) -> Any:
+        """What ``hint()`` gave when the untrusted cloud of detector stamp ``stamp_ns``
+        arrived (once; None when there was none)."""
+        with self._lock:
+            return self._hints.pop(stamp_ns, None)
 
     def _switch(self, start: int, offset: int, untrusted: bool) -> None:
         self._offset = offset

@@ -42,8 +42,14 @@ def test_a_sane_stream_passes_unchanged() -> None:
 def test_zero_stamps_become_arrival_order_and_pair_the_newest_odometry() -> None:
     clock = Clock()
     guard = StampGuard(clock)
-    got = feed(guard, clock, [0] * 5, every_ns=SEC // 10)
+    got = []
+    for i in range(5):
+        clock.t += SEC // 10
+        got.append(guard.take(0, lambda i=i: f'odometry {i}'))
     assert [p for _, p in got] == ['zero'] * 5
+    # The odometry newest at arrival, once each.
+    assert [guard.hint(s) for s, _ in got] == [f'odometry {i}' for i in range(5)]
+    assert guard.hint(got[0][0]) is None
     assert [s for s, _ in got] == [0, SEC // 10, 2 * SEC // 10, 3 * SEC // 10, 4 * SEC // 10]
     assert all(guard.source(s) == (0, False) for s, _ in got)
 
