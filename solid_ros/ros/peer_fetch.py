@@ -6,11 +6,17 @@ earlier keyframes are verified, and no lock is held while waiting. A reply is ta
 it matches a pending request in every field: its random request id, the owner asked, the
 keyframe index and stamp, and this robot as requester; anything else is counted and dropped.
 
-Liveness: a robot that timed out and has not been heard from since is not asked again
-(``'peer_gone'``: it left). One that is heard from but lets ``MAX_TIMEOUTS`` requests in a
-row time out is skipped for ``backoff_sec``, after which one request probes it; each probe
-that times out doubles the back-off (up to ``MAX_BACKOFF_SEC``), a reply ends it. Either way
-a peer that does not answer costs a few time-outs, not one per candidate.
+A request that has no reply after a third of the time-out is sent again (twice at most, same
+id): a reply lost on a lossy link, or crowded out of the owner's reader by a flood, costs a
+resend instead of the candidate.
+
+Liveness: a robot that timed out and has not been heard from since is not asked for
+``backoff_sec`` (``'peer_gone'``: it left, or went quiet; asked again after that, since a
+robot that has stopped driving answers but sends nothing). One that is heard from but lets
+``MAX_TIMEOUTS`` requests in a row time out is skipped for ``backoff_sec``, after which one
+request probes it; each probe that times out doubles the back-off (up to
+``MAX_BACKOFF_SEC``), a reply ends it. Either way a peer that does not answer costs a few
+time-outs, not one per candidate.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from solid_ros.formats.peers import CloudReply
 __all__ = ['CloudFetches', 'Pending']
 
 MAX_TIMEOUTS = 3  # time-outs in a row before a robot is backed off
+SENDS = 3  # a request without a reply is sent again after 1/3 and 2/3 of the time-out
 MAX_BACKOFF_SEC = 600.0
 MAX_PENDING = 1024
 
@@ -81,8 +88,8 @@ class CloudFetches:
         now = self._clock()
         with self._lock:
             h = self._health.get(robot)
-            if h is not None and (now < h.backoff_until
-                                  or self._heard(robot) <= h.silent_at):
+            if h is not None and (now < h.backoff_until or (
+                    self._heard(robot) <= h.silent_at and now - h.silent_at < self.backoff_sec)):
                 self._count('clouds_peer_gone', 1)
                 return 'peer_gone'
             if len(self._pending) >= MAX_PENDING:
@@ -111,12 +118,20 @@ class CloudFetches:
         p.done.set()
         return True
 
-    def finish(self, p: Pending | Reason) -> KeyframeCloud | Reason:
-        """Wait (without any lock) until the request's reply or deadline; the cloud or why
-        there is none (``'peer_timeout'``, ``'peer_evicted'``, or the reason ``start`` gave)."""
+    def finish(self, p: Pending | Reason,
+               resend: Callable[[Pending], None] | None = None) -> KeyframeCloud | Reason:
+        """Wait (without any lock) until the request's reply or deadline, sending it again
+        (``resend``) after each third of the time-out without a reply; the cloud or why there
+        is none (``'peer_timeout'``, ``'peer_evicted'``, or the reason ``start`` gave)."""
         if isinstance(p, str):
             return p
-        p.done.wait(max(0.0, p.deadline - self._clock()))
+        step = (p.deadline - p.sent) / SENDS
+        for k in range(1, SENDS + 1):
+            if p.done.wait(max(0.0, min(p.sent + k * step, p.deadline) - self._clock())):
+                break
+            if k < SENDS and resend is not None:
+                self._count('clouds_rerequested', 1)
+                resend(p)
         now = self._clock()
         with self._lock:
             self._pending.pop(p.request_id, None)

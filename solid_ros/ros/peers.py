@@ -183,6 +183,9 @@ class PeerLink:
         self.node.create_timer(1.0, self._renew)
 
     def _renew(self) -> None:
+        """Once a second: re-create subscriptions that got an oversized message, and forget
+        the liveness of robots no longer tracked."""
+        self._fetches.forget(set(self._guard.robots()))
         for topic, sub in self._subs.items():
             if sub.maybe_renew():
                 if self._note_size is not None:
@@ -196,7 +199,6 @@ class PeerLink:
             self._send(self._pub_req, REQUEST_TOPIC, CatchUpRequest(self.robot, self.catchup))
             self.counts['catchup_requests_sent'] += 1
         self._matched = matched
-        self._fetches.forget(set(self._guard.robots()))
 
     def share(self, proposal: Proposal) -> None:
         """Publish the descriptor of a keyframe this robot just stored."""
@@ -213,9 +215,12 @@ class PeerLink:
         the result to :meth:`collect` (no request when the robot left or is backed off)."""
         p = self._fetches.start(int(robot), int(index), int(stamp_ns))
         if not isinstance(p, str):
-            self._send(self._pub_req, REQUEST_TOPIC,
-                       CloudRequest(self.robot, p.robot, p.index, p.request_id, p.stamp_ns))
+            self._send_request(p)
         return p
+
+    def _send_request(self, p: Pending) -> None:
+        self._send(self._pub_req, REQUEST_TOPIC,
+                   CloudRequest(self.robot, p.robot, p.index, p.request_id, p.stamp_ns))
 
     def collect(self, pending: Pending | Reason) -> KeyframeCloud | Reason:
         """Wait (no lock held) until the reply to :meth:`request` or its deadline.
@@ -226,7 +231,7 @@ class PeerLink:
             been heard of since, or it is backed off after time-outs in a row: not asked) or
             ``'peer_evicted'`` (it no longer has it).
         """
-        return self._fetches.finish(pending)
+        return self._fetches.finish(pending, self._send_request)
 
     def fetch(self, robot: int, index: int, stamp_ns: int) -> KeyframeCloud | Reason:
         """:meth:`request` and :meth:`collect` in one call (blocks up to the timeout)."""

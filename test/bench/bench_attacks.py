@@ -380,6 +380,7 @@ def run_single(rig: Rig, data: Hku1, params: list[str], attack: Callable[..., Re
     rig.feed('', messages if messages is not None else data.messages, each=each)
     out['wall_s'] = time.monotonic() - t0
     out['cpu_s'] = rig.cpu_sec('') - cpu0
+    out['cpu_s_per_min'] = 60.0 * out['cpu_s'] / out['wall_s']
     rig.wait(lambda: not rig.jobs, 'the attack to end', 600.0)
     time.sleep(RENEW_GAP_SEC + 3.0)  # re-subscription and heap trim after huge messages
     own, false, other = data.score(rig.loops[''], 0, stamp_map or (lambda s: s))
@@ -402,7 +403,7 @@ def run_single(rig: Rig, data: Hku1, params: list[str], attack: Callable[..., Re
 _PEER_KEYS = ('unauthenticated', 'descriptors_stored', 'oversized', 'rate_limited',
               'robots_full', 'malformed', 'replies_mismatched', 'clouds_timed_out',
               'peers_backed_off', 'clouds_peer_gone', 'catchups_refused', 'robots',
-              'robots_dropped', 'clouds_served', 'replayed', 'stale')
+              'robots_dropped', 'clouds_served', 'replayed', 'stale', 'clouds_rerequested')
 
 
 def peers_params(rig: Rig, key: bool = True) -> list[str]:
@@ -601,10 +602,11 @@ def attack_storms(rig: Rig, data: Hku1, out: Result) -> Callable[[int], None]:
     return lambda sent: rig.later(lambda: burst(sent))
 
 
-def split_racer(rig: Rig, data: Hku1, key: bool) -> Result:
+def split_racer(rig: Rig, data: Hku1, key: bool, mode: str) -> Result:
     """hku1's first half is robot 0, its second half robot 1 (which returns to robot 0's
-    start); an attacker answers robot 1's cloud requests first, with robot 0's keyframe
-    turned 20 degrees (it asks robot 0 for it, in robot 1's name)."""
+    start). ``mode`` 'racer': an attacker answers robot 1's cloud requests first, with robot
+    0's keyframe turned 20 degrees (it asks robot 0 for it, in robot 1's name); 'storm': it
+    floods robot 0 with catch-up and cloud requests while robot 1 runs; 'none': no attack."""
     params = rig.tmp / 'fleet.yaml'
     params.write_text((CONFIG_DIR / 'avia.yaml').read_text().replace('solid_node:', '/**:', 1))
     for r, sid in (('r0', 0), ('r1', 1)):
@@ -637,19 +639,39 @@ def split_racer(rig: Rig, data: Hku1, key: bool) -> Result:
             _send(rep, raw)
             _send(rep, seal(raw, WRONG_KEY, 0, time.time_ns(), REPLY_TOPIC))
 
-    rig.listen(REQUEST_TOPIC, on_req)
-    rig.listen(REPLY_TOPIC, on_rep)
+    storm = mode == 'storm'
+    if mode == 'racer':
+        rig.listen(REQUEST_TOPIC, on_req)
+        rig.listen(REPLY_TOPIC, on_rep)
     half = data.stamps[len(data.stamps) // 2]
     first = [(k, m) for k, m in data.messages if stamp_of(m) < half]
     second = [(k, m) for k, m in data.messages if stamp_of(m) >= half]
     rig.feed('r0', first)
-    rig.feed('r1', second)
+    each = None
+    if storm:
+        ids = iter(range(2000, 10**6))
+        stamps = data.stamps[:len(data.stamps) // 2]
+
+        def burst() -> None:
+            for _ in range(20):
+                _send(req, encode(CatchUpRequest(next(ids), 100_000)))
+            for index in range(0, min(200, len(stamps))):
+                _send(req, encode(CloudRequest(next(ids), 0, index, index, stamps[index])))
+
+        def each(sent: int) -> None:
+            rig.later(burst)
+    cpu0 = rig.cpu_sec('r0')
+    t0 = time.monotonic()
+    rig.feed('r1', second, each=each)
+    cpu_r0 = 60.0 * (rig.cpu_sec('r0') - cpu0) / (time.monotonic() - t0)
     loops = rig.loops['r1']
     inter = [c for c in loops if c['match_session'] == 0]
     _, false, _ = data.score(inter, 0)
     s = rig.status('r1')
-    return {'inter_robot': len(inter), 'false': false,
-            'peer': {k[5:]: v for k, v in s.items() if k[5:] in _PEER_KEYS}}
+    s0 = rig.status('r0')
+    return {'inter_robot': len(inter), 'false': false, 'robot0_cpu_s_per_min': cpu_r0,
+            'peer': {k[5:]: v for k, v in s.items() if k[5:] in _PEER_KEYS},
+            'robot0_peer': {k[5:]: v for k, v in s0.items() if k[5:] in _PEER_KEYS}}
 
 
 def stored_ids(tmp: Path) -> Result:
@@ -720,9 +742,14 @@ def scenarios(tmp: Path) -> dict[str, Callable[[Rig, Hku1], Result]]:
         'replies_2M_points': peer(attack_big_replies),
         'garbage_100MB': peer(attack_garbage),
         'robot_ids_30k': peer(attack_ids),
+        'robot_ids_30k_nokey': peer(attack_ids, key=False),
         'request_storms': peer(attack_storms),
-        'racer_split': lambda rig, data: split_racer(rig, data, key=True),
-        'racer_split_nokey': lambda rig, data: split_racer(rig, data, key=False),
+        'request_storms_nokey': peer(attack_storms, key=False),
+        'split': lambda rig, data: split_racer(rig, data, True, 'none'),
+        'racer_split': lambda rig, data: split_racer(rig, data, True, 'racer'),
+        'racer_split_nokey': lambda rig, data: split_racer(rig, data, False, 'racer'),
+        'storm_split': lambda rig, data: split_racer(rig, data, True, 'storm'),
+        'storm_split_nokey': lambda rig, data: split_racer(rig, data, False, 'storm'),
         'stored_ids': lambda rig, data: stored_ids(rig.tmp),
     }
 

@@ -7,9 +7,7 @@ exchange is attacked in test_peer_link.py.
 from __future__ import annotations
 
 import math
-import os
-import random
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +26,7 @@ from test_node import (  # noqa: E402
     Harness,
     _problems,
     _scene,
+    domain_id,  # noqa: F401  (its autouse fixture: a random ROS_DOMAIN_ID)
     harness,  # noqa: E402,F401  (the fixture)
     make_odom,
 )
@@ -35,17 +34,6 @@ from test_node import (  # noqa: E402
 from solid_ros.core.persistence import read_database  # noqa: E402
 
 SEC = 1_000_000_000
-
-
-@pytest.fixture(scope='module', autouse=True)
-def domain_id() -> Iterator[None]:
-    old = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(random.randint(101, 160))
-    yield
-    if old is None:
-        os.environ.pop('ROS_DOMAIN_ID', None)
-    else:
-        os.environ['ROS_DOMAIN_ID'] = old
 
 
 def _set(h: Harness, name: str, value: Any) -> Any:

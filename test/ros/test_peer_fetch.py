@@ -61,9 +61,14 @@ def test_a_silent_peer_is_backed_off_after_a_few_time_outs() -> None:
     assert f.finish(f.start(4, 1, 1)) == 'peer_timeout'  # one probe, then a longer back-off
     heard[4] = now[0] = now[0] + 31.0
     assert f.start(4, 1, 1) == 'peer_gone'
-    # A robot that timed out and was not heard from since has left: not asked again.
+    # A robot that timed out and was not heard from since has left, or went quiet: not
+    # asked again for the back-off period, then once more.
     assert f.finish(f.start(5, 1, 1)) == 'peer_timeout'
     assert f.start(5, 1, 1) == 'peer_gone'
+    now[0] += 29.0
+    assert f.start(5, 1, 1) == 'peer_gone'
+    now[0] += 1.0
+    assert isinstance(f.start(5, 1, 1), Pending)
 
 
 def test_a_reply_arriving_while_waiting_wakes_the_collector() -> None:
@@ -72,3 +77,19 @@ def test_a_reply_arriving_while_waiting_wakes_the_collector() -> None:
     assert isinstance(p, Pending)
     threading.Timer(0.05, f.deliver, [CloudReply(2, 0, 3, p.request_id, 4, None)]).start()
     assert f.finish(p) == 'peer_evicted' and counts['clouds_evicted'] == 1
+
+
+def test_a_request_without_a_reply_is_sent_again_twice_within_its_time_out() -> None:
+    f, counts, _ = make(timeout=0.3)
+    sent: list[int] = []
+    p = f.start(2, 3, 4)
+    assert isinstance(p, Pending)
+    assert f.finish(p, lambda q: sent.append(q.request_id)) == 'peer_timeout'
+    assert sent == [p.request_id] * 2 and counts['clouds_rerequested'] == 2
+    q = f.start(7, 5, 6)
+    assert isinstance(q, Pending)
+
+    def answer(again: Pending) -> None:  # the resend is answered
+        f.deliver(CloudReply(7, 0, 5, again.request_id, 6, CLOUD))
+
+    assert f.finish(q, answer) is CLOUD
