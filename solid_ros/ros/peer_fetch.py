@@ -10,13 +10,12 @@ A request that has no reply after a third of the time-out is sent again (twice a
 id): a reply lost on a lossy link, or crowded out of the owner's reader by a flood, costs a
 resend instead of the candidate.
 
-Liveness: a robot that timed out and has not been heard from since is not asked for
-``backoff_sec`` (``'peer_gone'``: it left, or went quiet; asked again after that, since a
-robot that has stopped driving answers but sends nothing). One that is heard from but lets
-``MAX_TIMEOUTS`` requests in a row time out is skipped for ``backoff_sec``, after which one
+Liveness: a robot that lets ``MAX_TIMEOUTS`` requests in a row time out (requests sent
+together count as one) is skipped for ``backoff_sec`` (``'peer_gone'``), after which one
 request probes it; each probe that times out doubles the back-off (up to
-``MAX_BACKOFF_SEC``), a reply ends it. Either way a peer that does not answer costs a few
-time-outs, not one per candidate.
+``MAX_BACKOFF_SEC``), a reply ends it. A robot that left, or one that never answers, costs a
+few time-outs, not one per candidate. (Whether it is still heard from says nothing: a fake
+robot keeps talking, and a robot that has stopped driving still answers but sends nothing.)
 """
 
 from __future__ import annotations
@@ -68,28 +67,26 @@ class CloudFetches:
     Args:
         timeout_sec: how long a request may wait for its reply (settable).
         backoff_sec: first back-off of a robot that keeps timing out.
-        heard: monotonic time a robot was last heard from (-inf: never).
         count: adds to a counter by name.
         clock: monotonic seconds.
     """
 
-    def __init__(self, timeout_sec: float, backoff_sec: float, heard: Callable[[int], float],
+    def __init__(self, timeout_sec: float, backoff_sec: float,
                  count: Callable[[str, int], None],
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.timeout_sec, self.backoff_sec = float(timeout_sec), float(backoff_sec)
-        self._heard, self._count, self._clock = heard, count, clock
+        self._count, self._clock = count, clock
         self._lock = threading.Lock()
         self._pending: dict[int, Pending] = {}
         self._health: dict[int, _Health] = {}
 
     def start(self, robot: int, index: int, stamp_ns: int) -> Pending | Reason:
-        """A new request to send, or why none is sent: ``'peer_gone'`` (left or backed off)
-        or ``'peer_timeout'`` (too many requests in flight)."""
+        """A new request to send, or why none is sent: ``'peer_gone'`` (backed off) or
+        ``'peer_timeout'`` (too many requests in flight)."""
         now = self._clock()
         with self._lock:
             h = self._health.get(robot)
-            if h is not None and (now < h.backoff_until or (
-                    self._heard(robot) <= h.silent_at and now - h.silent_at < self.backoff_sec)):
+            if h is not None and now < h.backoff_until:
                 self._count('clouds_peer_gone', 1)
                 return 'peer_gone'
             if len(self._pending) >= MAX_PENDING:
@@ -138,7 +135,8 @@ class CloudFetches:
             reply = p.reply
             h = self._health.setdefault(p.robot, _Health())
             if reply is None:
-                h.timeouts += 1
+                if h.silent_at < p.sent:  # requests out together time out as one
+                    h.timeouts += 1
                 h.silent_at = now
                 if h.timeouts >= MAX_TIMEOUTS and now >= h.backoff_until:
                     h.backoff_sec = min(MAX_BACKOFF_SEC, max(self.backoff_sec,

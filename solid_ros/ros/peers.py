@@ -122,8 +122,7 @@ class PeerLink:
             max_robots=cfg.peer_max_robots, window_sec=cfg.peer_replay_window_sec,
             descriptor_rate=cfg.peer_descriptor_rate,
             descriptor_burst=float(self.catchup + 100), request_rate=cfg.peer_request_rate)
-        self._fetches = CloudFetches(cfg.peer_timeout_sec, cfg.peer_backoff_sec,
-                                     self._heard, self._count)
+        self._fetches = CloudFetches(cfg.peer_timeout_sec, cfg.peer_backoff_sec, self._count)
         self._warned: dict[str, float] = {}
         self._send_locks = {t: threading.Lock()
                             for t in (DESCRIPTOR_TOPIC, REQUEST_TOPIC, REPLY_TOPIC)}
@@ -169,9 +168,6 @@ class PeerLink:
 
     def _count(self, kind: str, n: int = 1) -> None:
         self.counts[kind] += n
-
-    def _heard(self, robot: int) -> float:
-        return self._guard.robots().get(robot, -float('inf'))
 
     # -- sending -----------------------------------------------------------------------------
 
@@ -227,8 +223,8 @@ class PeerLink:
 
         Returns:
             The cloud, or the reason there is none: ``'peer_timeout'`` (no answer in time:
-            the robot left or the link lost it), ``'peer_gone'`` (it timed out and has not
-            been heard of since, or it is backed off after time-outs in a row: not asked) or
+            the robot left or the link lost it), ``'peer_gone'`` (backed off after time-outs in
+            a row: not asked) or
             ``'peer_evicted'`` (it no longer has it).
         """
         return self._fetches.finish(pending, self._send_request)

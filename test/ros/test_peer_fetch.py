@@ -14,17 +14,14 @@ from solid_ros.ros.peer_fetch import MAX_TIMEOUTS, CloudFetches, Pending
 CLOUD = KeyframeCloud(np.ones((10, 3), np.float32), 5)
 
 
-def make(timeout: float = 0.05, heard: dict[int, float] | None = None,
-         ) -> tuple[CloudFetches, Counter[str], list[float]]:
+def make(timeout: float = 0.05) -> tuple[CloudFetches, Counter[str], list[float]]:
     counts: Counter[str] = Counter()
     now = [0.0]
-    seen = heard if heard is not None else {}
 
     def count(kind: str, n: int) -> None:
         counts[kind] += n
 
-    f = CloudFetches(timeout, 30.0, lambda r: seen.get(r, -float('inf')), count,
-                     clock=lambda: now[0])
+    f = CloudFetches(timeout, 30.0, count, clock=lambda: now[0])
     return f, counts, now
 
 
@@ -47,28 +44,23 @@ def test_only_a_reply_matching_owner_index_and_stamp_is_taken() -> None:
 
 
 def test_a_silent_peer_is_backed_off_after_a_few_time_outs() -> None:
-    heard = {4: 0.0}
-    f, counts, now = make(heard=heard)
+    f, counts, now = make()
     reasons = []
     for _ in range(MAX_TIMEOUTS):
-        heard[4] = now[0] = now[0] + 1.0  # it keeps publishing descriptors...
-        reasons.append(f.finish(f.start(4, 1, 1)))  # ...but never answers
+        now[0] += 1.0
+        reasons.append(f.finish(f.start(4, 1, 1)))  # it never answers
     assert reasons == ['peer_timeout'] * MAX_TIMEOUTS and counts['peers_backed_off'] == 1
-    heard[4] = now[0] = now[0] + 1.0
-    assert f.start(4, 1, 1) == 'peer_gone'  # skipped during the back-off, no wait
-    now[0] += 31.0
-    heard[4] = now[0]
-    assert f.finish(f.start(4, 1, 1)) == 'peer_timeout'  # one probe, then a longer back-off
-    heard[4] = now[0] = now[0] + 31.0
-    assert f.start(4, 1, 1) == 'peer_gone'
-    # A robot that timed out and was not heard from since has left, or went quiet: not
-    # asked again for the back-off period, then once more.
-    assert f.finish(f.start(5, 1, 1)) == 'peer_timeout'
-    assert f.start(5, 1, 1) == 'peer_gone'
-    now[0] += 29.0
-    assert f.start(5, 1, 1) == 'peer_gone'
     now[0] += 1.0
-    assert isinstance(f.start(5, 1, 1), Pending)
+    assert f.start(4, 1, 1) == 'peer_gone'  # skipped during the back-off, no wait
+    now[0] += 29.0
+    assert f.finish(f.start(4, 1, 1)) == 'peer_timeout'  # one probe, then a longer back-off
+    now[0] += 31.0
+    assert f.start(4, 1, 1) == 'peer_gone'
+    now[0] += 30.0
+    p = f.start(4, 1, 1)
+    assert isinstance(p, Pending)  # the next probe is answered: back-off over
+    f.deliver(CloudReply(4, 0, 1, p.request_id, 1, CLOUD))
+    assert f.finish(p) is CLOUD and isinstance(f.start(4, 1, 1), Pending)
 
 
 def test_a_reply_arriving_while_waiting_wakes_the_collector() -> None:
@@ -86,10 +78,21 @@ def test_a_request_without_a_reply_is_sent_again_twice_within_its_time_out() -> 
     assert isinstance(p, Pending)
     assert f.finish(p, lambda q: sent.append(q.request_id)) == 'peer_timeout'
     assert sent == [p.request_id] * 2 and counts['clouds_rerequested'] == 2
-    q = f.start(7, 5, 6)
+    q = f.start(2, 5, 6)
     assert isinstance(q, Pending)
 
     def answer(again: Pending) -> None:  # the resend is answered
-        f.deliver(CloudReply(7, 0, 5, again.request_id, 6, CLOUD))
+        f.deliver(CloudReply(2, 0, 5, again.request_id, 6, CLOUD))
 
     assert f.finish(q, answer) is CLOUD
+
+
+def test_requests_out_together_time_out_as_one() -> None:
+    f, counts, now = make()
+    for _ in range(MAX_TIMEOUTS - 1):
+        now[0] += 1.0
+        batch = [f.start(4, i, i) for i in range(8)]  # one keyframe's candidates
+        assert [f.finish(p) for p in batch] == ['peer_timeout'] * 8
+    assert counts['peers_backed_off'] == 0
+    now[0] += 1.0
+    assert f.finish(f.start(4, 9, 9)) == 'peer_timeout' and counts['peers_backed_off'] == 1
