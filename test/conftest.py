@@ -45,6 +45,23 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
     _no_tool_skips(outcome.get_result())  # type: ignore[attr-defined]
 
 
+_ROS_FILES = ('test_colcon.py', 'test_launch.py')
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark what a test needs, so ``-m 'not ros and not data and not slow'`` is the fast part:
+    ``data`` when it uses the real data set, ``ros`` when it runs rclpy (everything under
+    test/ros, the colcon and launch tests, and any test on an rclpy ``context``); ``slow`` is
+    set by the tests themselves."""
+    for item in items:
+        path = Path(str(item.fspath))
+        names = set(getattr(item, 'fixturenames', ()))
+        if 'shared_data' in names or 'hku1' in names:
+            item.add_marker(pytest.mark.data)
+        if 'ros' in path.parts or path.name in _ROS_FILES or 'context' in names:
+            item.add_marker(pytest.mark.ros)
+
+
 @pytest.fixture(scope='session')
 def shared_data() -> Path:
     """Path of ../shared/data; skips the test with the reason when it is absent."""

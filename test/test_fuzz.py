@@ -42,6 +42,8 @@ from solid_ros.formats.pointcloud2 import FLOAT32, FLOAT64, cloud_to_xyz
 from solid_ros.ros.cli import check_parameter_files, scan_arguments
 from solid_ros.tools import replay
 
+pytestmark = pytest.mark.slow  # hundreds of malformed files, bags and processes
+
 SEED = 20261122
 BIN = Path(sys.executable).parent
 CFG = SolidConfig(exclude_recent_frames=2, capacity=64)
@@ -546,3 +548,77 @@ def test_fuzz_through_the_executables(tmp_path: Path, sources: dict[str, Path]) 
         assert 'Traceback' not in proc.stderr
     assert before == {p: _sha(p) for p in before}
     assert bags_before == {p: _tree_sha(p) for p in bags_before}
+
+
+# -- peer messages ------------------------------------------------------------------------------
+
+
+def test_fuzz_peer_messages(capsys: pytest.CaptureFixture[str]) -> None:
+    """Damaged peer messages, plain or sealed: decoding refuses them with PeerMessageError
+    (or reads a valid message); with a fleet key not one damaged envelope opens."""
+    from solid_ros.core.keyframes import KeyframeCloud
+    from solid_ros.formats.peers import (
+        CatchUpRequest,
+        CloudReply,
+        CloudRequest,
+        DescriptorMessage,
+        PeerMessageError,
+        decode,
+        encode,
+    )
+    from solid_ros.ros.peer_guard import PeerGuard, Refused
+
+    rng = random.Random(SEED + 3)
+    nrng = np.random.default_rng(SEED)
+    key = b'fuzzing fleet key, 32 bytes long'
+    cloud = KeyframeCloud(nrng.normal(size=(200, 3)).astype(np.float32), 50)
+    msgs = [encode(DescriptorMessage(3, 7, 11, '0123456789abcdef',
+                                     nrng.random(40).astype(np.float32),
+                                     nrng.random(60).astype(np.float32), (0.0,) * 6 + (1.0,))),
+            encode(CloudRequest(3, 4, 5, 6, 7)), encode(CatchUpRequest(3, 100)),
+            encode(CloudReply(4, 3, 5, 6, 7, cloud)), encode(CloudReply(4, 3, 5, 6, 7, None))]
+    sender = PeerGuard(3, key)
+    receiver = PeerGuard(9, key)
+    tally = Tally()
+    opened = Counter[str]()
+
+    def plain(blob: bytes) -> None:
+        try:
+            decode(blob, max_cloud_points=1000)
+            opened['plain decoded'] += 1
+        except PeerMessageError:
+            opened['plain refused'] += 1
+
+    def sealed(blob: bytes, intact: bool) -> None:
+        try:
+            _, inner = receiver.open('/t', blob)
+        except Refused as r:
+            assert not intact, r
+            opened[f'sealed {r.kind}'] += 1
+            return
+        assert intact, 'a damaged envelope opened'
+        decode(inner)
+        opened['sealed opened'] += 1
+
+    for _ in range(600):
+        base = rng.choice(msgs)
+        kind = rng.choice(['flip', 'overwrite', 'truncate', 'extend'])
+        if kind == 'flip':
+            blob = _flip(base, rng, rng.randint(1, 4))
+        elif kind == 'overwrite':
+            blob = _overwrite(base, rng, rng.choice([4, 8, 32]))
+        elif kind == 'truncate':
+            blob = base[:rng.randrange(len(base))]
+        else:
+            blob = base + rng.randbytes(rng.randint(1, 64))
+        tally.check('peer messages', kind, lambda b=blob: plain(b))
+        env = sender.seal('/t', base)
+        tally.check('sealed peer messages', 'intact', lambda e=env: sealed(e, True))
+        bad = _flip(env, rng, rng.randint(1, 3)) if kind != 'truncate' else env[:-1]
+        if bad != env:
+            tally.check('sealed peer messages', kind, lambda b=bad: sealed(b, False))
+    with capsys.disabled():
+        print(f'\npeer fuzz: {sum(tally.tried.values())} tried; '
+              + ', '.join(f'{k} {n}' for k, n in sorted(opened.items())))
+    assert not tally.failures, '\n'.join(tally.failures[:20])
+    assert opened['plain refused'] > 300 and opened['sealed opened'] == 600

@@ -209,6 +209,10 @@ class SolidConfig(_Schema):
                              low=1, high=1000)
     session_id: int = _p(0, 'Session id stored with every scan of this run', low=0,
                          high=2**31 - 1, read_only=True)
+    peer_capacity: int = _p(50000, "Stored scans of peer robots, in a ring of their own (the "
+                            "oldest peer scan is evicted beyond this; a peer never evicts this "
+                            "robot's scans; 0 stores none)", low=0, high=10_000_000,
+                            read_only=True)
 
     # Query and acceptance (tunable at runtime).
     distance_threshold: float = _p(0.03, 'Accept a loop when cosine distance is below this',
@@ -473,6 +477,40 @@ class NodeConfig(_Schema):
                                     'below it the motion along some direction is unknown: '
                                     'reset, new segment (0 = off)', low=0.0, high=1.0,
                                     read_only=True)
+
+    # Bounds on the inputs and on peers: what a participant of the ROS domain can send.
+    max_points_per_cloud: int = _p(500_000, 'PointCloud2 with more points are thinned to '
+                                   'this by keeping every k-th point (counted as downsampled): '
+                                   'bounds time and memory of a huge cloud', low=1000,
+                                   high=100_000_000, read_only=True)
+    allow_runtime_weakening: bool = _p(False, 'Accept runtime parameter changes that weaken '
+                                       'loop acceptance or gating (any participant on the ROS '
+                                       'domain can send them); changes that make the node '
+                                       'stricter are always accepted', read_only=True)
+    peer_key_file: str = _p('', 'File holding the fleet key (16+ bytes, shared by the robots, '
+                            'never sent or logged): every peer message is authenticated with '
+                            'HMAC-SHA256 and others are refused (empty = unauthenticated, for '
+                            'a trusted ROS domain)', read_only=True)
+    peer_allowlist: str = _p('', "Robot ids accepted as peers, e.g. '1,2,3' (empty = any)",
+                             read_only=True)
+    peer_max_robots: int = _p(32, 'Peer robots tracked; the least recently heard is dropped '
+                              'for a new one', low=1, high=100_000, read_only=True)
+    peer_replay_window_sec: float = _p(60.0, 'With a fleet key: largest difference between a '
+                                       "peer message's stamp and this clock (replays and "
+                                       'unsynchronised clocks are refused)', low=1.0,
+                                       high=86400.0, read_only=True)
+    peer_descriptor_rate: float = _p(50.0, 'Descriptors a second accepted from one robot '
+                                     '(beyond a burst of peer_catchup + 100)', low=0.1,
+                                     high=1e6, read_only=True)
+    peer_request_rate: float = _p(100.0, 'Cloud requests a second answered for one robot '
+                                  '(burst 500; 200 a second for all together)', low=0.1,
+                                  high=1e6, read_only=True)
+    peer_max_cloud_points: int = _p(100_000, 'Largest peer keyframe cloud accepted, points '
+                                    '(bigger replies are refused unread)', low=100,
+                                    high=2_000_000, read_only=True)
+    peer_backoff_sec: float = _p(30.0, 'A peer that lets 3 cloud requests in a row time out is '
+                                 'not asked for this long (doubling while it stays silent)',
+                                 low=1.0, high=3600.0, read_only=True)
 
     def _validate_cross(self) -> None:
         if self.kiss_max_range <= self.kiss_min_range:

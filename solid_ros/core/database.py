@@ -15,6 +15,11 @@ the same) and searches the scans added since its last rebuild exactly, so nothin
 A scan whose R-SOLiD is all zero (another robot's, or one from a file; the detector refuses
 such clouds of its own) is stored, so indices stay contiguous, but it neither matches nor is
 matched.
+
+Peer robots' scans (:meth:`DescriptorDatabase.add_foreign`) live in a ring of their own,
+``peer_capacity`` scans, so however many a peer sends they never evict this session's scans
+(nor loaded ones); their sequence numbers start at ``PEER_SEQ_BASE``. Searches cover both
+rings; at equal distance this session's scan ranks first.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.errors import DatabaseError
 
-__all__ = ['DescriptorDatabase', 'Match', 'POSE_FIELDS']
+__all__ = ['DescriptorDatabase', 'Match', 'PEER_SEQ_BASE', 'POSE_FIELDS']
 
 # Stored pose layout: position then unit quaternion (NaN when the scan had no pose).
 POSE_FIELDS = ('x', 'y', 'z', 'qx', 'qy', 'qz', 'qw')
@@ -41,8 +46,11 @@ POSE_FIELDS = ('x', 'y', 'z', 'qx', 'qy', 'qz', 'qw')
 _TAIL_DIVISOR = 16
 # Rows allocated at first; the arrays double from here up to ``capacity``.
 _INITIAL_ROWS = 1024
+# Sequence numbers of peers' scans start here (their own ring; see the module docstring).
+PEER_SEQ_BASE = 1 << 56
 _HAS_R = np.uint8(1)
 _HAS_POSE = np.uint8(2)
+_MAX_SESSION = 2**31 - 1  # session ids: SolidConfig.session_id's range
 
 Int64Array = npt.NDArray[np.int64]
 
@@ -112,12 +120,19 @@ class DescriptorDatabase:
         self._tree: Any = None  # scipy.spatial.cKDTree, imported only in kd-tree mode
         self._tree_seqs: Int64Array = np.zeros(0, dtype=np.int64)
         self._tree_hi = 0  # the tree holds scans with seq < _tree_hi
+        self._peers: DescriptorDatabase | None = None  # peers' ring, made on first use
+        self._peer_keys: dict[tuple[int, int], int] = {}  # (session, index) -> its seq
 
     # ----------------------------------------------------------------------------- state
     @property
     def size(self) -> int:
-        """Number of stored scans (all sessions)."""
-        return self._size
+        """Number of stored scans (all sessions, peers' included)."""
+        return self._size + (self._peers.size if self._peers is not None else 0)
+
+    @property
+    def peer_size(self) -> int:
+        """Number of stored peers' scans (in their own ring of ``peer_capacity``)."""
+        return self._peers.size if self._peers is not None else 0
 
     @property
     def session_count(self) -> int:
@@ -126,13 +141,21 @@ class DescriptorDatabase:
 
     @property
     def oldest_seq(self) -> int:
-        """Sequence number of the oldest stored scan."""
+        """Sequence number of the oldest stored scan of this session or a loaded one."""
         return self._next - self._size
 
     @property
     def next_seq(self) -> int:
-        """Sequence number the next added scan gets."""
+        """Sequence number the next added scan of this session gets."""
         return self._next
+
+    def stored_seqs(self) -> list[int]:
+        """Sequence numbers of every stored scan in :meth:`export_arrays` order."""
+        out = list(range(self.oldest_seq, self._next))
+        if self._peers is not None:
+            out += [PEER_SEQ_BASE + s for s in range(self._peers.oldest_seq,
+                                                     self._peers.next_seq)]
+        return out
 
     def _arrays(self) -> tuple[npt.NDArray[np.generic], ...]:
         return (self._r, self._a, self._stamp, self._index, self._session, self._pose,
@@ -140,13 +163,14 @@ class DescriptorDatabase:
 
     @property
     def allocated(self) -> int:
-        """Rows allocated now (grows by doubling up to ``capacity``)."""
-        return len(self._flags)
+        """Rows allocated now (grows by doubling up to ``capacity``, peers' ring included)."""
+        return len(self._flags) + (self._peers.allocated if self._peers is not None else 0)
 
     @property
     def nbytes(self) -> int:
         """Bytes the allocated arrays hold (the kd-tree's copy excluded)."""
-        return sum(a.nbytes for a in self._arrays())
+        return (sum(a.nbytes for a in self._arrays())
+                + (self._peers.nbytes if self._peers is not None else 0))
 
     @property
     def bytes_per_scan(self) -> int:
@@ -156,7 +180,7 @@ class DescriptorDatabase:
     @property
     def stored_bytes(self) -> int:
         """Bytes the stored scans use: ``size * bytes_per_scan``."""
-        return self._size * self.bytes_per_scan
+        return self.size * self.bytes_per_scan
 
     def _reserve(self, rows: int) -> None:
         """Grow the arrays to hold at least ``rows`` (<= capacity) rows, doubling."""
@@ -176,17 +200,27 @@ class DescriptorDatabase:
         """Array slot of a stored scan."""
         return seq % self.capacity
 
+    def _peer(self, seq: int) -> DescriptorDatabase | None:
+        """The peers' ring when ``seq`` is one of its scans."""
+        return self._peers if seq >= PEER_SEQ_BASE else None
+
     def is_stored(self, seq: int) -> bool:
         """Whether scan ``seq`` is still stored (not evicted)."""
+        if seq >= PEER_SEQ_BASE:
+            return self._peers is not None and self._peers.is_stored(seq - PEER_SEQ_BASE)
         return self.oldest_seq <= seq < self._next
 
     def heading(self, seq: int) -> npt.NDArray[np.float32]:
         """Heading signature (A-SOLiD unless heading_weight is range), unit-normalised."""
+        if (peers := self._peer(seq)) is not None:
+            return peers.heading(seq - PEER_SEQ_BASE)
         row: npt.NDArray[np.float32] = self._a[self.slot(seq)]
         return row
 
     def r_solid(self, seq: int) -> npt.NDArray[np.float32]:
         """R-SOLiD (unit-normalised; zeros for an empty scan) of a stored scan."""
+        if (peers := self._peer(seq)) is not None:
+            return peers.r_solid(seq - PEER_SEQ_BASE)
         s = self.slot(seq)
         if not self._flags[s] & _HAS_R:
             return np.zeros(self.num_range, dtype=np.float32)
@@ -195,11 +229,15 @@ class DescriptorDatabase:
 
     def pose(self, seq: int) -> npt.NDArray[np.float32] | None:
         """Stored pose ``(x, y, z, qx, qy, qz, qw)`` of a scan, or None."""
+        if (peers := self._peer(seq)) is not None:
+            return peers.pose(seq - PEER_SEQ_BASE)
         s = self.slot(seq)
         return self._pose[s] if self._flags[s] & _HAS_POSE else None
 
     def match_info(self, seq: int) -> tuple[int, int, int]:
         """Return ``(index, session, stamp_ns)`` of a stored scan."""
+        if (peers := self._peer(seq)) is not None:
+            return peers.match_info(seq - PEER_SEQ_BASE)
         s = self.slot(seq)
         return int(self._index[s]), int(self._session[s]), int(self._stamp[s])
 
@@ -229,7 +267,8 @@ class DescriptorDatabase:
 
     def sessions(self) -> set[int]:
         """Session ids of the stored scans."""
-        return {int(v) for v in np.unique(self._session[:self._size])}
+        out = {int(v) for v in np.unique(self._session[:self._size])}
+        return out | (self._peers.sessions() if self._peers is not None else set())
 
     def own_seq(self, index: int) -> int | None:
         """Sequence number of this session's scan ``index``, or None when not stored."""
@@ -244,7 +283,9 @@ class DescriptorDatabase:
                     pose: Sequence[float] | npt.ArrayLike | None = None) -> int:
         """Store a scan of another session (a peer robot's keyframe) while this one runs.
 
-        Such scans are never excluded as recent and evict like any other.
+        Such scans are never excluded as recent. They go to the peers' ring
+        (``peer_capacity`` scans, the oldest peer scan evicted beyond it), never evicting a
+        scan of this session or a loaded one.
 
         Args:
             session: its session (robot) id; not this database's ``session_id``.
@@ -252,17 +293,38 @@ class DescriptorDatabase:
             r_solid, heading, stamp_ns, pose: as for :meth:`add`.
 
         Returns:
-            Its sequence number.
+            Its sequence number (``PEER_SEQ_BASE`` or more).
 
         Raises:
-            DatabaseError: the session is this database's own, or a shape is wrong.
+            DatabaseError: the session is this database's own, the scan is already stored
+                (see :meth:`has_foreign`), a shape is wrong, or ``peer_capacity`` is 0.
         """
-        if int(session) == self.session_id:
+        session, index = int(session), int(index)
+        if session == self.session_id:
             raise DatabaseError(f"session {session} is this database's own session id")
-        seq = self._next
-        self._put(r_solid, heading, int(stamp_ns), int(index), int(session), pose)
-        self._maybe_rebuild()
-        return seq
+        if (session, index) in self._peer_keys:
+            raise DatabaseError(f'scan {index} of session {session} is already stored')
+        peers = self._peer_ring()
+        if peers.size == peers.capacity:  # its oldest goes
+            gone_index, gone_session, _ = peers.match_info(peers.oldest_seq)
+            self._peer_keys.pop((gone_session, gone_index), None)
+        seq = peers._next
+        peers._put(r_solid, heading, int(stamp_ns), index, session, pose)
+        peers._maybe_rebuild()
+        self._peer_keys[(session, index)] = seq
+        return PEER_SEQ_BASE + seq
+
+    def has_foreign(self, session: int, index: int) -> bool:
+        """Whether a peer's scan ``index`` of ``session`` is stored (a repeat is refused)."""
+        return (int(session), int(index)) in self._peer_keys
+
+    def _peer_ring(self) -> DescriptorDatabase:
+        if self._peers is None:
+            cap = self.config.peer_capacity
+            if cap <= 0:
+                raise DatabaseError("peer_capacity is 0: peers' scans are not stored")
+            self._peers = DescriptorDatabase(self.config.replace(capacity=cap))
+        return self._peers
 
     def _put(self, r_solid: npt.ArrayLike, heading: npt.ArrayLike, stamp_ns: int, index: int,
              session: int, pose: Sequence[float] | npt.ArrayLike | None) -> None:
@@ -333,9 +395,20 @@ class DescriptorDatabase:
         if q.shape != (self.num_range,):
             raise DatabaseError(f'query R-SOLiD has {q.shape[0]} bins, the database '
                                 f'{self.num_range}')
-        if not ok or self._size == 0 or k <= 0:
+        if not ok or self.size == 0 or k <= 0:
             return []
-        cut, time_limit = self._exclusion(int(stamp_ns), exclude_frames, exclude_sec)
+        found = self._search_own(q, int(stamp_ns), k, exclude_frames, exclude_sec)
+        if self._peers is None or self._peers.size == 0:
+            return found
+        peers = [Match(PEER_SEQ_BASE + m.seq, m.index, m.session, m.stamp_ns, m.distance)
+                 for m in self._peers.search(r_solid, stamp_ns, k)]
+        return sorted(found + peers, key=lambda m: (m.distance, m.seq))[:k]
+
+    def _search_own(self, q: npt.NDArray[np.float64], stamp_ns: int, k: int,
+                    exclude_frames: int, exclude_sec: float) -> list[Match]:
+        if self._size == 0:
+            return []
+        cut, time_limit = self._exclusion(stamp_ns, exclude_frames, exclude_sec)
         if self.config.search == 'kdtree' and self._tree is not None:
             seqs = self._search_tree(q, k, cut, time_limit)
         else:
@@ -466,6 +539,7 @@ class DescriptorDatabase:
     def export_arrays(self) -> dict[str, npt.NDArray[np.generic]]:
         """Return the stored scans, oldest first, as plain arrays (for saving).
 
+        This session's and loaded scans first, then peers' scans (as :meth:`stored_seqs`).
         Keys: ``r_solid`` (n, N_r) float32 unit (zeros for empty scans), ``a_solid`` (n,
         N_a) float32 (the heading signature; the file key keeps its first name),
         ``stamps_ns`` int64, ``indices`` int64, ``sessions`` int32, ``poses`` (n, 7)
@@ -476,9 +550,13 @@ class DescriptorDatabase:
         r[(self._flags[slots] & _HAS_R) == 0] = 0.0
         poses = self._pose[slots].copy()
         poses[(self._flags[slots] & _HAS_POSE) == 0] = np.nan
-        return {'r_solid': r, 'a_solid': self._a[slots].copy(),
-                'stamps_ns': self._stamp[slots].copy(), 'indices': self._index[slots].copy(),
-                'sessions': self._session[slots].copy(), 'poses': poses}
+        out = {'r_solid': r, 'a_solid': self._a[slots].copy(),
+               'stamps_ns': self._stamp[slots].copy(), 'indices': self._index[slots].copy(),
+               'sessions': self._session[slots].copy(), 'poses': poses}
+        if self._peers is not None and self._peers.size:  # then the peers' scans
+            theirs = self._peers.export_arrays()
+            out = {k: np.concatenate([v, theirs[k]]) for k, v in out.items()}
+        return out
 
     def import_arrays(self, arrays: dict[str, npt.NDArray[np.generic]]) -> None:
         """Store scans of earlier sessions (as given by :meth:`export_arrays`).
@@ -493,11 +571,15 @@ class DescriptorDatabase:
         if self._session_count:
             raise DatabaseError('scans can only be loaded before the session adds any')
         sessions = np.asarray(arrays['sessions'])
+        if np.any((sessions < 0) | (sessions > _MAX_SESSION)):
+            bad = int(sessions[(sessions < 0) | (sessions > _MAX_SESSION)][0])
+            raise DatabaseError(f'the saved database holds session id {bad}, outside 0 to '
+                                f'{_MAX_SESSION}: not a database this version wrote')
         if np.any(sessions == self.session_id):
-            free = int(sessions.max()) + 1
             raise DatabaseError(f'the saved database already holds session_id '
                                 f'{self.session_id}; give this run another session_id '
-                                f'(e.g. {free}) so its scans stay distinguishable')
+                                f'(e.g. {_free_session(sessions)}) so its scans stay '
+                                'distinguishable')
         n = len(sessions)
         first = max(0, n - self.capacity)
         count = n - first
@@ -518,6 +600,12 @@ class DescriptorDatabase:
         self._next += count
         self._size = min(self._size + count, self.capacity)
         self._maybe_rebuild(force=True)
+
+
+def _free_session(sessions: npt.NDArray[np.generic]) -> int:
+    """The smallest valid session id not in ``sessions``."""
+    used = {int(v) for v in np.unique(sessions)}
+    return next(i for i in range(len(used) + 1) if i not in used)
 
 
 def _unit_rows(rows: npt.NDArray[np.generic]) -> tuple[npt.NDArray[np.float32],

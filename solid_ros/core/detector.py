@@ -94,10 +94,7 @@ _NAN_COV: tuple[float, ...] = (math.nan,) * 36
 CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | Reason']
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 Source = Literal['descriptor', 'graph']  # what proposed a candidate
-# The graph's candidates are registered from its pose alone: the A-SOLiD hypotheses are the
-# descriptor's guess of a heading it matched, and add little where the graph placed a
-# keyframe (hku1: the same loops, a cheaper verification).
-_GRAPH_GUESS_ONLY = True
+
 
 @dataclass(frozen=True)
 class LoopCandidate:
@@ -681,7 +678,8 @@ class LoopDetector:
             yaws[i] = hyps[0][0] if hyps else 0.0
             if i in results:  # a peer's cloud that did not come
                 continue
-            starts = [] if hit.source == 'graph' and _GRAPH_GUESS_ONLY else [y for y, _ in hyps]
+            # The graph's guess first; the heading hypotheses when drift put it too far off.
+            starts = [y for y, _ in hyps]
             c = verifier.coarse(query, (hit.match.session, hit.match.seq), clouds[i], starts,
                                 () if hit.guess is None else (hit.guess,))
             if c.rejection is not None:

@@ -36,6 +36,7 @@ import json
 import math
 import os
 import re
+import shutil
 import stat
 import tempfile
 import zipfile
@@ -54,9 +55,10 @@ from solid_ros.core.errors import DatabaseError, SolidError
 from solid_ros.core.geometry import pose_to_vector, vector_to_matrix
 from solid_ros.core.keyframes import CloudStore, KeyframeCloud
 
-__all__ = ['FORMAT', 'VERSION', 'NpyHeader', 'PriorMap', 'check_save_target', 'is_database',
-           'load_database', 'read_database', 'read_map_poses', 'read_npz_headers',
-           'remove_stale_temporaries', 'save_database', 'write_atomic']
+__all__ = ['FORMAT', 'VERSION', 'NpyHeader', 'PriorMap', 'backup_if_shrinking',
+           'check_save_target', 'is_database', 'load_database', 'read_database',
+           'read_map_poses', 'read_npz_headers', 'remove_stale_temporaries', 'save_database',
+           'write_atomic']
 
 FORMAT = 'solid_ros.database'
 VERSION = 3
@@ -110,7 +112,7 @@ def save_database(db: DescriptorDatabase, path: str | Path,
 def _export_clouds(db: DescriptorDatabase,
                    clouds: CloudStore | None) -> dict[str, npt.NDArray[Any]]:
     """The clouds of the stored scans, oldest first, as the three cloud arrays."""
-    seqs = range(db.oldest_seq, db.next_seq)
+    seqs = db.stored_seqs()
     parts: list[npt.NDArray[np.float32]] = []
     offsets = np.zeros(len(seqs) + 1, dtype=np.int64)
     struct = np.full(len(seqs), -1, dtype=np.int32)
@@ -219,6 +221,59 @@ def is_database(path: str | Path) -> bool:
     except (DatabaseError, *_READ_ERRORS):
         return False
     return meta.get('format') == FORMAT
+
+
+def _scan_count(path: Path) -> int | None:
+    """Scans held by the database at ``path`` (None: not a readable database)."""
+    try:
+        with _open_archive(path) as zf:
+            meta = _read_meta(zf, read_npz_headers(zf, path), path)
+    except (DatabaseError, *_READ_ERRORS):
+        return None
+    count = meta.get('count')
+    return count if isinstance(count, int) and meta.get('format') == FORMAT else None
+
+
+def backup_if_shrinking(path: str | Path, new_count: int, ratio: float = 0.5) -> Path | None:
+    """Keep the database at ``path`` as ``<path>.bak`` before a save of ``new_count`` scans
+    that would replace it with an empty one or one under ``ratio`` of its size.
+
+    The backup is a hard link (a copy where links are impossible) taken before the save, so
+    the saved scans survive a ``~/reset`` followed by ``~/save_database``. An existing backup
+    is replaced only by a database at least as large: repeated resets and saves never wear
+    the largest one away.
+
+    Returns:
+        The backup written, or None (no database at ``path``, or the save does not shrink it).
+
+    Raises:
+        DatabaseError: the backup could not be written (the save should not go ahead).
+    """
+    target = Path(path)
+    old = _scan_count(target) if target.is_file() and not target.is_symlink() else None
+    if old is None or old == 0 or (new_count > 0 and new_count >= ratio * old):
+        return None
+    backup = target.with_name(target.name + '.bak')
+    check_save_target(backup)
+    kept = _scan_count(backup) if backup.exists() else None
+    if kept is not None and kept > old:
+        return backup  # a larger backup is kept as it is
+    tmp = backup.with_name(f'.{backup.name}.{os.getpid()}.link')
+    try:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        try:
+            os.link(target, tmp)
+        except OSError:
+            shutil.copyfile(target, tmp, follow_symlinks=False)
+        os.replace(tmp, backup)
+        _fsync_dir(backup.parent)
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise DatabaseError(f'cannot keep a backup of {target} as {backup}: '
+                            f'{err.strerror or err}') from err
+    return backup
 
 
 def remove_stale_temporaries(path: str | Path) -> list[Path]:
@@ -555,7 +610,10 @@ def load_database(path: str | Path, config: SolidConfig,
                             + '; '.join(diffs[:6]) + more)
     db = DescriptorDatabase(config)
     first = db.next_seq - max(0, len(arrays['indices']) - config.capacity)
-    db.import_arrays(arrays)
+    try:
+        db.import_arrays(arrays)
+    except DatabaseError as err:
+        raise DatabaseError(f'{path}: {err}') from err
     if clouds is not None and 'cloud_offsets' in arrays:
         off, struct, pts = arrays['cloud_offsets'], arrays['cloud_struct'], arrays['cloud_points']
         for seq in range(db.oldest_seq, db.next_seq):

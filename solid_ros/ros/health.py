@@ -5,9 +5,11 @@ The problems (each lasting while its cause does; windows in seconds of ``clock``
 on the points topic for ``silence_sec`` since start or since the last one; with odometry, none
 for as long, or odometry whose stamps lie more than ``max(CLOCK_GAP_SEC, 10 x
 odom_tolerance_sec)`` from the cloud stamps (another clock); clouds rejected, dropped because
-a stage falls behind, or failed with an error in the last ``silence_sec``. Each distinct
-reason for a rejection (numbers aside) is logged when it first occurs, its repeats at most
-every ``WARN_THROTTLE_SEC``.
+a stage falls behind, or failed with an error in the last ``silence_sec``; odometry refused
+(not finite) or clouds whose stamps cannot be trusted (zero, repeated, going back; see
+:mod:`solid_ros.ros.stamp_guard`) in the last ``silence_sec``. Each distinct reason for a
+rejection (numbers aside) is logged when it first occurs, its repeats at most every
+``WARN_THROTTLE_SEC``; so are refused odometry and untrusted stamps, each kind on its own.
 
 The clock is injectable so that tests can step time instead of waiting for it.
 """
@@ -35,7 +37,13 @@ _TROUBLE = {
     'skipped': '{n} PointCloud2 dropped so far: processing falls behind (latest {ago:.0f} s ago)',
     'verify_skipped': '{n} keyframes dropped so far: verification falls behind (latest '
                       '{ago:.0f} s ago)',
-    'failed': '{n} clouds failed with an error so far (latest {ago:.0f} s ago; see the log)'}
+    'failed': '{n} clouds failed with an error so far (latest {ago:.0f} s ago; see the log)',
+    'odom_rejected': '{n} odometry messages refused so far (latest {ago:.0f} s ago: {why})',
+    'cloud_stamps': '{n} PointCloud2 with stamps that cannot be trusted so far (latest {ago:.0f} '
+                    's ago: {why}); processed in arrival order',
+}
+_STAMP_KINDS = {'zero': 'stamps_zero', 'repeated': 'stamps_repeated',
+                'backward': 'stamps_backward'}
 _SELF_LOGGED = ('rejected', *_TROUBLE)  # logged where they happen, not by check()
 _RECOVERED = {'no_clouds': 'PointCloud2 arriving', 'no_odom': 'odometry arriving',
               'odom_clock': 'odometry stamps match the clouds again'}
@@ -76,6 +84,8 @@ class InputHealth:
         self._trouble_at: dict[str, float] = {}
         self._reasons: OrderedDict[str, list[float]] = OrderedDict()
         self._last_reason = ''
+        self._why: dict[str, str] = {}  # latest detail of odom_rejected and cloud_stamps
+        self._logged_at: dict[str, float] = {}  # throttle of odom_rejected and cloud_stamps
         self._logged: dict[str, float] = {}  # problems logged by check(), when
 
     # -- events ------------------------------------------------------------------------------
@@ -101,6 +111,36 @@ class InputHealth:
             count: int = getattr(self.stats, kind) + 1
             setattr(self.stats, kind, count)
         return count
+
+    def odom_rejected(self, reason: str) -> str | None:
+        """Count an odometry message refused (not finite); return the warning to log, or None
+        within ``WARN_THROTTLE_SEC`` of the last one."""
+        with self._lock:
+            self.stats.odom_rejected += 1
+        return self._note('odom_rejected', reason, self.stats.odom_rejected,
+                          f'odometry message on {self.odom_topic} refused')
+
+    def untrusted_stamp(self, problem: str, header_ns: int) -> str | None:
+        """Count a cloud whose header stamp is ``'zero'``, ``'repeated'`` or ``'backward by
+        ...'``; return the warning to log, or None within ``WARN_THROTTLE_SEC`` of the last."""
+        counter = _STAMP_KINDS[problem.split()[0]]
+        with self._lock:
+            setattr(self.stats, counter, getattr(self.stats, counter) + 1)
+        s = self.stats
+        total = s.stamps_zero + s.stamps_repeated + s.stamps_backward
+        return self._note('cloud_stamps', f'stamp {header_ns / NS_PER_SEC:.3f} s is {problem}',
+                          total, f'PointCloud2 on {self.points_topic} processed in arrival '
+                          'order')
+
+    def _note(self, kind: str, why: str, total: int, what: str) -> str | None:
+        now = self._clock()
+        with self._lock:
+            self._trouble_at[kind] = now
+            self._why[kind] = why
+            if now - self._logged_at.get(kind, -WARN_THROTTLE_SEC) < WARN_THROTTLE_SEC:
+                return None
+            self._logged_at[kind] = now
+        return f'{what}: {why} ({total} so far)'
 
     def reject(self, reason: str) -> str | None:
         """Count a rejected cloud; return the warning to log, or None while its kind of reason
@@ -144,8 +184,12 @@ class InputHealth:
         if recent:
             out['rejected'] = (f'{recent} PointCloud2 rejected on {self.points_topic} in the '
                                f'last {self.silence_sec:.0f} s (latest: {reason})')
+        s = self.stats
+        counts = {'odom_rejected': s.odom_rejected,
+                  'cloud_stamps': s.stamps_zero + s.stamps_repeated + s.stamps_backward}
         for kind, t in trouble.items():
-            out[kind] = _TROUBLE[kind].format(n=getattr(self.stats, kind), ago=now - t)
+            n = counts[kind] if kind in counts else getattr(s, kind)
+            out[kind] = _TROUBLE[kind].format(n=n, ago=now - t, why=self._why.get(kind, ''))
         return out
 
     def _silence(self, now: float) -> dict[str, str]:
@@ -223,6 +267,9 @@ class InputHealth:
             'clouds_skipped': s.skipped, 'clouds_rejected': s.rejected,
             'clouds_failed': s.failed, 'clouds_without_odom': s.without_odom,
             'loop_candidates': s.loops,
+            'clouds_downsampled': s.downsampled, 'odom_rejected': s.odom_rejected,
+            'cloud_stamps_zero': s.stamps_zero, 'cloud_stamps_repeated': s.stamps_repeated,
+            'cloud_stamps_backward': s.stamps_backward,
         }
 
 

@@ -10,7 +10,14 @@ with ``use_odom``, ``odom`` (nav_msgs/Odometry); publishes ``~/loop_candidates``
 Health (logged as throttled warnings and raised to WARN on /diagnostics while it lasts; the
 windows are wall-clock seconds; see :mod:`solid_ros.ros.health`): no cloud on the resolved
 points topic, or with ``use_odom`` no odometry, for ``SILENCE_SEC``; odometry on another
-clock; clouds rejected, dropped or failed recently.
+clock; clouds rejected, dropped or failed recently; odometry refused (not finite) or cloud
+stamps that cannot be trusted (zero, repeated, going back: :mod:`solid_ros.ros.stamp_guard`
+then keeps the detector in arrival order).
+
+Bounds on what any participant can send: a cloud beyond ``max_points_per_cloud`` is thinned
+(counted); memory a huge message took is given back (:mod:`solid_ros.ros.memory`); runtime
+parameter changes that weaken the node are refused unless ``allow_runtime_weakening``
+(:mod:`solid_ros.ros.params`), and every accepted one is logged with its old and new value.
 
 Threading (:mod:`solid_ros.ros.stages`): the subscription callback only decodes (zero-copy)
 or rejects a cloud and hands it to a bounded queue; when the queue is full the oldest waiting
@@ -28,6 +35,7 @@ consumer of the whole flow (a pose graph) takes it there too.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -54,6 +62,7 @@ from solid_ros.core.odometry import OdomSample
 from solid_ros.core.persistence import check_save_target, read_map_poses, remove_stale_temporaries
 from solid_ros.core.posegraph import PoseGraph
 from solid_ros.core.stamps import join_stamp, seconds_to_ns
+from solid_ros.formats.peers import key_id
 from solid_ros.formats.pointcloud2 import cloud_to_xyz
 from solid_ros.formats.poses import PoseError, odometry_to_pose
 from solid_ros.ros.backend_io import BackendIO
@@ -63,11 +72,14 @@ from solid_ros.ros.health import WARN_THROTTLE_SEC, InputHealth
 from solid_ros.ros.kiss_io import KissIO
 from solid_ros.ros.loop_output import LoopOutput
 from solid_ros.ros.markers import LoopMarkers
+from solid_ros.ros.memory import LARGE_BYTES, HeapTrim, Renewal
 from solid_ros.ros.odom_wait import OdometryWait
-from solid_ros.ros.params import apply_changes, declare_all
+from solid_ros.ros.params import apply_changes, changed, declare_all
+from solid_ros.ros.peer_guard import key_file_is_private, load_fleet_key
 from solid_ros.ros.peers import PeerLink
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Stages, Verified
+from solid_ros.ros.stamp_guard import StampGuard
 from solid_ros.ros.stats import NodeStats
 from solid_ros.runtime import tune_allocator, tune_thread_switching
 
@@ -101,9 +113,11 @@ class SolidNode(Node):
         self._odom = (OdometryWait(seconds_to_ns(cfg.odom_tolerance_sec))
                       if cfg.use_odom and self._kiss is None else None)
         self._cloud_frame = ''
+        self._stamps = StampGuard()
+        self._trim = HeapTrim(busy=lambda: not self._stages.wait_idle(0.0))
         self._create_topics()
         self._health = InputHealth(
-            self._points_sub.topic_name,
+            self._points.current.topic_name,
             self._odom_sub.topic_name if self._odom is not None else None,
             cfg.qos_reliability, cfg.odom_tolerance_sec, self.count_publishers)
         self.stats = self._health.stats
@@ -115,7 +129,11 @@ class SolidNode(Node):
         self.create_timer(cfg.diagnostics_period_sec, self._publish_diagnostics)
         self.create_timer(_HEALTH_PERIOD_SEC, self._check_health)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._peers = self._start_peers() if cfg.peers else None
+        try:
+            self._peers = self._start_peers() if cfg.peers else None
+        except BaseException:
+            super().destroy_node()
+            raise
         self._backend = self._start_backend()
         self._loop_output = LoopOutput(
             self._pub_cands.publish, self.get_logger(), self.stats, self._shared, self._markers,
@@ -146,7 +164,10 @@ class SolidNode(Node):
             history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL)) if cfg.marker_max_loops else None)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._points_sub = self.create_subscription(PointCloud2, 'points', self._on_points, qos)
+        # Re-created after a cloud over max_points_per_cloud: frees what its reader keeps.
+        self._points = Renewal(
+            lambda: self.create_subscription(PointCloud2, 'points', self._on_points, qos),
+            self.destroy_subscription)
         if self._odom is not None:
             # Deep enough that a burst of odometry is not dropped before pairing.
             odom_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
@@ -155,12 +176,26 @@ class SolidNode(Node):
                                                       odom_qos)
 
     def _start_peers(self) -> PeerLink:
+        """The peer exchange; raises ConfigError for a fleet key file it cannot use."""
         cfg, solid = self._node_cfg, self._solid_cfg
-        peers = PeerLink(self, solid.session_id, solid.fingerprint(), cfg.peer_timeout_sec,
-                         cfg.peer_catchup, add_keyframe=self._shared.add_peer_keyframe,
+        key = load_fleet_key(cfg.peer_key_file) if cfg.peer_key_file else None
+        log = self.get_logger()
+        if key is None:
+            log.warning('peers: no peer_key_file, so peer messages are not authenticated: any '
+                        'participant on this ROS domain can send descriptors and clouds in '
+                        "another robot's name (fine on a trusted domain; see the README, "
+                        'Multi-robot loop closure: trust)')
+        else:
+            log.info(f'peers: messages authenticated with the fleet key in '
+                     f'{cfg.peer_key_file} (key id {key_id(key)})')
+            if not key_file_is_private(cfg.peer_key_file):
+                log.warning(f'peers: {cfg.peer_key_file} can be read by other users; '
+                            f'chmod 600 {cfg.peer_key_file}')
+        peers = PeerLink(self, solid.session_id, solid.fingerprint(), cfg, key,
+                         add_keyframe=self._shared.add_peer_keyframe,
                          own_cloud=self._shared.own_cloud,
-                         own_keyframes=self._shared.own_keyframes)
-        self._shared.set_fetch_cloud(peers.fetch)
+                         own_keyframes=self._shared.own_keyframes, note_size=self._trim.note)
+        self._shared.set_cloud_source(peers)
         peers.start()
         return peers
 
@@ -224,11 +259,16 @@ class SolidNode(Node):
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         try:
-            solid, node_cfg = apply_changes(self._solid_cfg, self._node_cfg, params)
+            solid, node_cfg = apply_changes(self._solid_cfg, self._node_cfg, params,
+                                            self._node_cfg.allow_runtime_weakening)
             if solid != self._solid_cfg:
                 self._shared.reconfigure(solid)
         except ConfigError as err:
+            self.get_logger().warning(f'parameter change refused: {err}',
+                                      throttle_duration_sec=WARN_THROTTLE_SEC)
             return SetParametersResult(successful=False, reason=str(err))
+        for name, old, new in changed(self._solid_cfg, self._node_cfg, solid, node_cfg):
+            self.get_logger().info(f'parameter {name} changed at runtime: {old!r} -> {new!r}')
         self._solid_cfg, self._node_cfg = solid, node_cfg
         self._health.odom_tolerance_sec = node_cfg.odom_tolerance_sec
         if self._odom is not None:
@@ -241,6 +281,14 @@ class SolidNode(Node):
 
     def _on_points(self, msg: PointCloud2) -> None:
         self._health.cloud_received()
+        self._trim.note(len(msg.data))
+        header = _header_ns(msg)
+        stamp, problem = self._stamps.take(
+            header, self._odom.newest if self._odom is not None else None)
+        if problem is not None:
+            line = self._health.untrusted_stamp(problem, header)
+            if line is not None:
+                self.get_logger().warning(line)
         try:
             points = cloud_to_xyz(msg)
             if points.shape[0] == 0:
@@ -248,8 +296,23 @@ class SolidNode(Node):
         except CloudError as err:
             self._stages.reject(str(err))
             return
+        cap = self._node_cfg.max_points_per_cloud
+        if points.shape[0] > cap:
+            points = self._thin(points, cap)
         self._cloud_frame = msg.header.frame_id
-        self._stages.put((points, _header_ns(msg)))
+        self._stages.put((points, stamp))
+
+    def _thin(self, points: Any, cap: int) -> Any:
+        """Every k-th point of a cloud beyond ``max_points_per_cloud`` (a copy, so the huge
+        message is freed when the callback returns)."""
+        step = -(-points.shape[0] // cap)
+        self.stats.downsampled += 1
+        self._points.request()
+        self.get_logger().warning(
+            f'PointCloud2 of {points.shape[0]} points on {self._health.points_topic} thinned '
+            f'to every {step}th point (max_points_per_cloud {cap}; {self.stats.downsampled} '
+            'so far)', throttle_duration_sec=WARN_THROTTLE_SEC)
+        return points[::step].copy()
 
     def _on_odom(self, msg: Odometry) -> None:
         assert self._odom is not None
@@ -257,8 +320,9 @@ class SolidNode(Node):
             sample = self._odom.add(_header_ns(msg), odometry_to_pose(msg), msg.pose.covariance,
                                     msg.header.frame_id)
         except PoseError as err:
-            self.get_logger().warning(f'odometry message skipped: {err}',
-                                      throttle_duration_sec=WARN_THROTTLE_SEC)
+            line = self._health.odom_rejected(str(err))
+            if line is not None:
+                self.get_logger().warning(line)
             return
         self._health.odom_received()
         if self._backend is not None:
@@ -270,19 +334,31 @@ class SolidNode(Node):
     def _pose_for(self, stamp_ns: int, points: Any) -> OdomSample | None:
         """The cloud's pose: KISS-ICP's registration of it, or the odometry within
         ``odom_tolerance_sec`` of it (waits briefly if it lags, while someone publishes
-        odometry)."""
+        odometry); for a cloud whose stamp cannot be trusted, the odometry that was newest
+        when it arrived."""
         if self._kiss is not None:
+            # The detector's stamp: monotonic even when the header's is not.
             return self._kiss.pose_for(stamp_ns, points, self._cloud_frame)
         if self._odom is None:
             return None
+        header_ns, trusted = self._stamps.source(stamp_ns)
+        if not trusted:
+            sample: OdomSample | None = self._stamps.hint(stamp_ns)
+            return sample
         publishing = self.count_publishers(self._odom_sub.topic_name) > 0
-        sample, gap_ns = self._odom.pair(stamp_ns, wait=publishing)
+        sample, gap_ns = self._odom.pair(header_ns, wait=publishing)
         if gap_ns is not None:
             self._health.odom_paired(gap_ns)
         return sample
 
     def _check_health(self) -> None:
-        """Log a problem when it appears and every ``REPEAT_SEC`` while it lasts."""
+        """Log a problem when it appears and every ``REPEAT_SEC`` while it lasts (and give
+        back the memory of a huge message)."""
+        if self._points.maybe_renew(idle=self._stages.wait_idle(0.0)):
+            self._trim.note(LARGE_BYTES)
+            self.get_logger().info('re-subscribed to the points topic to free the buffers of a '
+                                   'cloud over max_points_per_cloud')
+        self._trim.maybe_trim()
         warnings, recovered = self._health.check()
         for line in warnings:
             self.get_logger().warning(line)
@@ -294,7 +370,12 @@ class SolidNode(Node):
     def _hand_on(self, verified: Verified) -> None:
         """Every verified keyframe, in keyframe order, on the verify thread (the describe
         thread with ``verify`` off): the one place where each keyframe's result and paired
-        odometry go: the loops out first, then the pose graph."""
+        odometry go: the loops out first, then the pose graph. Its stamps are the clouds'
+        header stamps again (see :mod:`~solid_ros.ros.stamp_guard`).
+        """
+        if self._stamps.shifted:
+            verified = dataclasses.replace(verified, result=self._stamps.restore(
+                verified.result, self._solid_cfg.session_id))
         self._loop_output.take(verified)
         if self._backend is not None:
             self._backend.take(verified)
@@ -308,13 +389,18 @@ class SolidNode(Node):
             return response
         try:
             poses = self._backend.map_poses() if self._backend is not None else None
-            size = self._shared.save(path, poses)
+            size, backup = self._shared.save(path, poses)
         except (SolidError, OSError) as err:
             response.success, response.message = False, f'save failed: {err}'
             self.get_logger().error(response.message)
             return response
         response.success, response.message = True, f'saved {size} scans to {path}'
-        self.get_logger().info(response.message)
+        if backup is not None:
+            response.message += (f'; it replaced a database with more scans, kept as '
+                                 f'{backup}')
+            self.get_logger().warning(response.message)
+        else:
+            self.get_logger().info(response.message)
         return response
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:

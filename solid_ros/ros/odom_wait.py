@@ -14,8 +14,10 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.errors import PoseError
 from solid_ros.core.odometry import OdomSample, StampedOdometry
 
 __all__ = ['OdometryWait']
@@ -44,6 +46,7 @@ class OdometryWait:
         self._cv = threading.Condition()
         self._misses = 0
         self._closed = False
+        self._newest: OdomSample | None = None
 
     @property
     def tolerance_ns(self) -> int:
@@ -66,10 +69,14 @@ class OdometryWait:
         """Add an odometry pose (4x4) in arrival order and wake a waiting :meth:`pair`.
 
         Raises:
-            PoseError: the pose is not a finite 4x4 matrix; nothing changes.
+            PoseError: the pose is not a finite 4x4 matrix, or the covariance holds NaN or
+                infinite values (an all-zero one means unknown and is fine); nothing changes.
         """
+        if covariance is not None and not np.all(np.isfinite(np.asarray(covariance,
+                                                                         dtype=np.float64))):
+            raise PoseError('odometry covariance is not finite')
         with self._cv:
-            sample = self._odom.add(stamp_ns, pose, covariance)
+            sample = self._newest = self._odom.add(stamp_ns, pose, covariance)
             self.frame_id = frame_id
             self._misses = 0
             self._cv.notify_all()
@@ -94,6 +101,12 @@ class OdometryWait:
             if waited and self._behind(stamp_ns):
                 self._misses += 1
             return self._odom.pose_for(stamp_ns), self._odom.nearest_gap_ns(stamp_ns)
+
+    def newest(self) -> OdomSample | None:
+        """The newest odometry, whatever its stamp (for a cloud whose stamp cannot be
+        trusted: arrival order)."""
+        with self._cv:
+            return self._newest
 
     def close(self) -> None:
         """End any wait now and wait no more (the node is shutting down)."""

@@ -5,6 +5,12 @@ becomes a parameter whose :class:`ParameterDescriptor` carries the description, 
 the allowed strings) and ``read_only`` for settings that change descriptor shape or node
 wiring. Start-up errors become :class:`~solid_ros.errors.ConfigError` naming the parameter and
 its range; runtime changes are checked by the same dataclass validation as the core.
+
+Runtime changes come from any participant of the ROS domain (``~/set_parameters``), so unless
+the parameter file sets ``allow_runtime_weakening: true`` a change is accepted only when it
+makes the node stricter: each runtime-tunable setting has a direction in :data:`WEAKENS`
+(raising a maximum or lowering a minimum weakens the tests that decide whether a loop is true;
+``'any'`` marks a setting without such an order, which is locked). Tightening stays open.
 """
 
 from __future__ import annotations
@@ -39,10 +45,28 @@ from solid_ros.core.config import (
 from solid_ros.core.errors import ConfigError
 from solid_ros.core.stamps import INT64
 
-__all__ = ['apply_changes', 'declare_all', 'make_descriptor', 'unknown_overrides']
+__all__ = ['WEAKENS', 'apply_changes', 'changed', 'declare_all', 'make_descriptor',
+           'unknown_overrides', 'weakening']
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+# Which runtime change of a tunable setting weakens the node: 'up' (raising it: a maximum,
+# a count of chances, a tolerance), 'down' (lowering it: a minimum, an exclusion; 0 often
+# turns it off) or 'any' (no order: any change may). A tunable setting missing here counts as
+# 'any'. Keyframe gating decides no loop, but a remote change could starve the node of
+# keyframes: locked too.
+WEAKENS: dict[str, str] = {
+    'distance_threshold': 'up', 'num_candidates': 'up', 'max_candidates': 'up',
+    'exclude_recent_frames': 'down', 'exclude_recent_sec': 'down', 'min_margin': 'down',
+    'margin_neighbourhood': 'any', 'min_loop_gap': 'down', 'heading_match': 'any',
+    'keyframe_min_sec': 'any', 'keyframe_min_distance': 'any',
+    'keyframe_min_rotation_deg': 'any', 'verify_hypotheses': 'up',
+    'verify_min_coarse_overlap': 'down', 'verify_min_overlap': 'down', 'verify_max_rmse': 'up',
+    'verify_min_constraint': 'down', 'verify_max_conflict': 'up', 'verify_min_spread': 'down',
+    'verify_single_object_overlap': 'down', 'verify_max_drift': 'up',
+    'verify_max_drift_deg': 'up', 'odom_check_drift': 'up0', 'odom_check_slack_m': 'up',
+    'odom_tolerance_sec': 'up', 'peer_timeout_sec': 'up',
+}
 
 
 def make_descriptor(spec: ParamSpec) -> ParameterDescriptor:
@@ -100,12 +124,43 @@ def declare_all(node: Node) -> tuple[SolidConfig, NodeConfig]:
     return solid, node_cfg
 
 
-def apply_changes(solid: SolidConfig, node_cfg: NodeConfig,
-                  params: Iterable[Parameter]) -> tuple[SolidConfig, NodeConfig]:
+def weakening(name: str, old: Any, new: Any) -> bool:
+    """Whether changing setting ``name`` from ``old`` to ``new`` weakens the node (see
+    :data:`WEAKENS`; 'up0': raising weakens, and 0 turns the check off)."""
+    if old == new:
+        return False
+    way = WEAKENS.get(name, 'any')
+    if way == 'up0':
+        return new == 0 or (old != 0 and new > old)
+    if way == 'up':
+        return bool(new > old)
+    if way == 'down':
+        return bool(new < old)
+    return True
+
+
+def changed(solid: SolidConfig, node_cfg: NodeConfig, new_solid: SolidConfig,
+            new_node: NodeConfig) -> list[tuple[str, Any, Any]]:
+    """``(name, old, new)`` of every setting that differs, in schema order."""
+    old = {**solid.to_dict(), **node_cfg.to_dict()}
+    new = {**new_solid.to_dict(), **new_node.to_dict()}
+    return [(s.name, old[s.name], new[s.name]) for s in param_specs()
+            if old[s.name] != new[s.name]]
+
+
+def apply_changes(solid: SolidConfig, node_cfg: NodeConfig, params: Iterable[Parameter],
+                  allow_weakening: bool = False) -> tuple[SolidConfig, NodeConfig]:
     """Return the configurations with runtime parameter changes applied and validated.
 
+    Args:
+        solid, node_cfg: the settings in force.
+        params: the changes asked for.
+        allow_weakening: accept changes that weaken the node (see :data:`WEAKENS`); the
+            node passes ``allow_runtime_weakening`` from its parameter file.
+
     Raises:
-        ConfigError: a value is invalid or the setting is read-only; the message says why.
+        ConfigError: a value is invalid, the setting is read-only, or (unless
+            ``allow_weakening``) the change would weaken the node; the message says why.
     """
     specs = {s.name: s for s in param_specs()}
     solid_changes: dict[str, Any] = {}
@@ -124,6 +179,13 @@ def apply_changes(solid: SolidConfig, node_cfg: NodeConfig,
         target[p.name] = p.value
     new_solid = solid.replace(**solid_changes) if solid_changes else solid
     new_node = node_cfg.replace(**node_changes) if node_changes else node_cfg
+    if not allow_weakening:
+        for name, old, new in changed(solid, node_cfg, new_solid, new_node):
+            if weakening(name, old, new):
+                raise ConfigError(
+                    f'{name}: {old!r} -> {new!r} would weaken the node; refused at runtime '
+                    '(set allow_runtime_weakening: true in the parameter file to allow it; '
+                    'changes that make it stricter are accepted)')
     return new_solid, new_node
 
 

@@ -18,20 +18,27 @@ descriptors on request, not a replay of every sample. The request goes out whene
 matches more robots (a request sent before they match would be lost); a robot answers one
 requester at most every 2 s, and repeats are dropped on receipt.
 
-Robustness: a message that does not decode, comes from this robot, repeats a keyframe
-already stored or carries other descriptor settings (its fingerprint; one warning per robot)
-is counted and never stored. A cloud that does not come within ``peer_timeout_sec`` (the peer
-left, the link dropped it) or that the owner no longer stores leaves the candidate unverified:
-it is dropped and counted, never published.
+Trust and bounds (:mod:`solid_ros.ros.peer_guard`): with a fleet key every message is sealed
+with an HMAC tag and refused without a valid one, played again, or from a robot not on the
+allowlist; without a key (a trusted domain) nothing is authenticated. Either way every message
+is size-checked before it is decoded, robots are tracked up to ``peer_max_robots`` and each
+one's descriptors and requests are rate-limited; a message refused for any of these is counted
+(``peer_<why>``) and logged at most every ``_WARN_SEC`` per kind.
+
+Robustness: a message that does not decode, comes from this robot's id, repeats a keyframe
+already stored or carries other descriptor settings (its fingerprint) is counted and never
+stored. Cloud replies are matched to a pending request by id, owner, index and stamp
+(:mod:`solid_ros.ros.peer_fetch`). A cloud that does not come within ``peer_timeout_sec`` (the
+peer left, the link dropped it) or that the owner no longer stores leaves the candidate
+unverified: it is dropped and counted, never published; a peer that keeps timing out is
+skipped for a back-off period.
 """
 
 from __future__ import annotations
 
-import itertools
-import math
 import threading
 import time
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
@@ -41,27 +48,38 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt8MultiArray
 
+from solid_ros.core.config import NodeConfig
 from solid_ros.core.detector import Proposal
 from solid_ros.core.keyframes import KeyframeCloud
+from solid_ros.core.reasons import Reason
 from solid_ros.formats.peers import (
+    MAX_DESCRIPTOR_BYTES,
+    TAG_BYTES,
     CatchUpRequest,
     CloudReply,
     CloudRequest,
     DescriptorMessage,
+    Message,
     PeerMessageError,
     decode,
     encode,
+    reply_bytes,
+    reply_requester,
 )
+from solid_ros.ros.memory import LARGE_BYTES, Renewal
+from solid_ros.ros.peer_fetch import CloudFetches, Pending
+from solid_ros.ros.peer_guard import PeerGuard, Refused, parse_allowlist
 
 __all__ = ['DESCRIPTOR_TOPIC', 'PeerLink', 'REPLY_TOPIC', 'REQUEST_TOPIC']
 
 DESCRIPTOR_TOPIC = '/solid/descriptors'
 REQUEST_TOPIC = '/solid/cloud_requests'
 REPLY_TOPIC = '/solid/clouds'
-_SEEN_LIMIT = 1_000_000  # (robot, index) pairs remembered to drop repeats
 _WARN_SEC = 10.0
 _DISCOVERY_SEC = 0.5  # how often the catch-up checks for newly matched robots
-_CATCHUP_GAP_SEC = 2.0  # one catch-up answer per requester within this time
+_REQUEST_BYTES = 256  # a request is 44 bytes, 100 in an envelope
+_ENVELOPE = 64  # envelope header and tag, rounded up
+_LISTED_ROBOTS = 16  # robots named on /diagnostics (the rest are counted)
 
 KeyframeRow = tuple[int, int, npt.NDArray[np.float64], npt.NDArray[np.float64],
                     npt.NDArray[np.float64] | None]
@@ -74,54 +92,82 @@ class PeerLink:
         node: the node that owns the publishers and subscriptions.
         robot: this robot's id (its ``session_id``).
         fingerprint: its descriptor settings fingerprint.
-        timeout_sec: how long :meth:`fetch` waits for a cloud.
-        catchup: most descriptors sent to (and asked of) a late joiner.
-        add_keyframe: stores a peer's keyframe (takes the detector's lock); raises SolidError.
-        own_cloud: this robot's stored cloud of a keyframe index, or None.
+        cfg: the node settings (``peer_*``).
+        key: the fleet key (None: messages are neither sealed nor authenticated).
+        add_keyframe: stores a peer's keyframe (takes the detector's lock); returns False for
+            one already stored; raises SolidError.
+        own_cloud: this robot's stored cloud of a keyframe index and stamp, or None.
         own_keyframes: this robot's newest stored keyframes (for a catch-up).
+        note_size: told the size of every message received (the node trims the heap after
+            huge ones).
     """
 
-    def __init__(self, node: Node, robot: int, fingerprint: str, timeout_sec: float,
-                 catchup: int, add_keyframe: Callable[[DescriptorMessage], None],
-                 own_cloud: Callable[[int], KeyframeCloud | None],
-                 own_keyframes: Callable[[int], list[KeyframeRow]]) -> None:
+    def __init__(self, node: Node, robot: int, fingerprint: str, cfg: NodeConfig,
+                 key: bytes | None, add_keyframe: Callable[[DescriptorMessage], bool],
+                 own_cloud: Callable[[int, int], KeyframeCloud | None],
+                 own_keyframes: Callable[[int], list[KeyframeRow]],
+                 note_size: Callable[[int], None] | None = None) -> None:
         self.node = node
         self.robot = int(robot)
         self.fingerprint = fingerprint
-        self.timeout_sec = float(timeout_sec)
-        self.catchup = int(catchup)
+        self.catchup = int(cfg.peer_catchup)
+        self.max_cloud_points = int(cfg.peer_max_cloud_points)
         self._add = add_keyframe
         self._own_cloud = own_cloud
         self._own_keyframes = own_keyframes
+        self._note_size = note_size
         self.counts: Counter[str] = Counter()
-        self.robots: dict[int, float] = {}  # peer robot id -> monotonic time of last message
-        self._refused: set[int] = set()
-        self._seen: OrderedDict[tuple[int, int], None] = OrderedDict()
-        self._ids = itertools.count(1)
-        self._lock = threading.Lock()
-        self._pending: dict[int, tuple[threading.Event, list[CloudReply]]] = {}
+        self._guard = PeerGuard(
+            self.robot, key, allow=parse_allowlist(cfg.peer_allowlist),
+            max_robots=cfg.peer_max_robots, window_sec=cfg.peer_replay_window_sec,
+            descriptor_rate=cfg.peer_descriptor_rate,
+            descriptor_burst=float(self.catchup + 100), request_rate=cfg.peer_request_rate)
+        self._fetches = CloudFetches(cfg.peer_timeout_sec, cfg.peer_backoff_sec, self._count)
+        self._warned: dict[str, float] = {}
+        self._send_locks = {t: threading.Lock()
+                            for t in (DESCRIPTOR_TOPIC, REQUEST_TOPIC, REPLY_TOPIC)}
         self._matched = 1  # our own subscription to the request topic
-        self._answered: dict[int, float] = {}  # requester -> monotonic time of last catch-up
-        self._silent: dict[int, float] = {}  # robot -> time its last cloud request timed out
         reliable = ReliabilityPolicy.RELIABLE
-        self._pub_desc = node.create_publisher(
-            UInt8MultiArray, DESCRIPTOR_TOPIC,
-            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=reliable))
-        self._pub_req = node.create_publisher(
-            UInt8MultiArray, REQUEST_TOPIC,
-            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=reliable))
-        self._pub_reply = node.create_publisher(
-            UInt8MultiArray, REPLY_TOPIC,
-            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=reliable))
-        node.create_subscription(
-            UInt8MultiArray, DESCRIPTOR_TOPIC, self._on_descriptor,
-            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=reliable))
-        node.create_subscription(
-            UInt8MultiArray, REQUEST_TOPIC, self._on_request,
-            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=reliable))
-        node.create_subscription(
-            UInt8MultiArray, REPLY_TOPIC, self._on_reply,
-            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=reliable))
+
+        def qos(depth: int) -> QoSProfile:
+            return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                              reliability=reliable)
+
+        self._pub_desc = node.create_publisher(UInt8MultiArray, DESCRIPTOR_TOPIC, qos(100))
+        self._pub_req = node.create_publisher(UInt8MultiArray, REQUEST_TOPIC, qos(100))
+        self._pub_reply = node.create_publisher(UInt8MultiArray, REPLY_TOPIC, qos(10))
+
+        def subscription(topic: str, handle: Callable[[Any], None], depth: int) -> Renewal:
+            return Renewal(lambda: node.create_subscription(UInt8MultiArray, topic, handle,
+                                                            qos(depth)),
+                           node.destroy_subscription)
+
+        # Each re-created after an oversized message (frees what its DDS reader keeps).
+        self._subs = {DESCRIPTOR_TOPIC: subscription(DESCRIPTOR_TOPIC, self._on_descriptor, 1000),
+                      REQUEST_TOPIC: subscription(REQUEST_TOPIC, self._on_request, 100),
+                      REPLY_TOPIC: subscription(REPLY_TOPIC, self._on_reply, 10)}
+
+    @property
+    def robots(self) -> PeerGuard:
+        """The robots heard from recently (``robot in link.robots``; bounded)."""
+        return self._guard
+
+    @property
+    def authenticated(self) -> bool:
+        """Whether messages are sealed and checked with a fleet key."""
+        return self._guard.key is not None
+
+    @property
+    def timeout_sec(self) -> float:
+        """How long a cloud request may wait for its reply."""
+        return self._fetches.timeout_sec
+
+    @timeout_sec.setter
+    def timeout_sec(self, value: float) -> None:
+        self._fetches.timeout_sec = float(value)
+
+    def _count(self, kind: str, n: int = 1) -> None:
+        self.counts[kind] += n
 
     # -- sending -----------------------------------------------------------------------------
 
@@ -130,11 +176,23 @@ class PeerLink:
         time discovery finds more of them (a request sent before they match is lost)."""
         if self.catchup:
             self.node.create_timer(_DISCOVERY_SEC, self._catch_up)
+        self.node.create_timer(1.0, self._renew)
+
+    def _renew(self) -> None:
+        """Once a second: re-create subscriptions that got an oversized message, and forget
+        the liveness of robots no longer tracked."""
+        self._fetches.forget(set(self._guard.robots()))
+        for topic, sub in self._subs.items():
+            if sub.maybe_renew():
+                if self._note_size is not None:
+                    self._note_size(LARGE_BYTES)
+                self.node.get_logger().info(f're-subscribed to {topic} to free the buffers of '
+                                            'an oversized message')
 
     def _catch_up(self) -> None:
         matched = self._pub_req.get_subscription_count()
         if matched > self._matched:
-            self._send(self._pub_req, CatchUpRequest(self.robot, self.catchup))
+            self._send(self._pub_req, REQUEST_TOPIC, CatchUpRequest(self.robot, self.catchup))
             self.counts['catchup_requests_sent'] += 1
         self._matched = matched
 
@@ -143,120 +201,135 @@ class PeerLink:
         if proposal.r_solid is None:
             return
         pose = None if proposal.pose is None else tuple(float(v) for v in proposal.pose)
-        self._send(self._pub_desc, DescriptorMessage(
+        self._send(self._pub_desc, DESCRIPTOR_TOPIC, DescriptorMessage(
             self.robot, proposal.query_index, proposal.stamp_ns, self.fingerprint,
             _unit(proposal.r_solid), _unit(proposal.heading), pose))
         self.counts['descriptors_sent'] += 1
 
-    def fetch(self, robot: int, index: int, stamp_ns: int) -> KeyframeCloud | str:
-        """Ask ``robot`` for the cloud of its keyframe ``index``; wait up to the timeout.
+    def request(self, robot: int, index: int, stamp_ns: int) -> Pending | Reason:
+        """Ask ``robot`` for the cloud of its keyframe ``index`` now, without waiting; hand
+        the result to :meth:`collect` (no request when the robot left or is backed off)."""
+        p = self._fetches.start(int(robot), int(index), int(stamp_ns))
+        if not isinstance(p, str):
+            self._send_request(p)
+        return p
+
+    def _send_request(self, p: Pending) -> None:
+        self._send(self._pub_req, REQUEST_TOPIC,
+                   CloudRequest(self.robot, p.robot, p.index, p.request_id, p.stamp_ns))
+
+    def collect(self, pending: Pending | Reason) -> KeyframeCloud | Reason:
+        """Wait (no lock held) until the reply to :meth:`request` or its deadline.
 
         Returns:
             The cloud, or the reason there is none: ``'peer_timeout'`` (no answer in time:
-            the robot left or the link lost it), ``'peer_gone'`` (it timed out before and has
-            not been heard of since: not asked again, so a departed robot costs one timeout)
-            or ``'peer_evicted'`` (it no longer has it).
+            the robot left or the link lost it), ``'peer_gone'`` (backed off after time-outs in
+            a row: not asked) or
+            ``'peer_evicted'`` (it no longer has it).
         """
-        silent_since = self._silent.get(int(robot))
-        if silent_since is not None and self.robots.get(int(robot), -math.inf) <= silent_since:
-            self.counts['clouds_peer_gone'] += 1  # no word from it since it last timed out
-            return 'peer_gone'
-        rid = next(self._ids)
-        done = threading.Event()
-        box: list[CloudReply] = []
-        with self._lock:
-            self._pending[rid] = (done, box)
-        self.counts['clouds_requested'] += 1
-        t0 = time.monotonic()
-        self._send(self._pub_req, CloudRequest(self.robot, int(robot), int(index), rid))
-        try:
-            if not done.wait(self.timeout_sec):
-                self.counts['clouds_timed_out'] += 1
-                self._silent[int(robot)] = time.monotonic()
-                return 'peer_timeout'
-        finally:
-            with self._lock:
-                self._pending.pop(rid, None)
-        reply = box[0]
-        if reply.cloud is None:
-            self.counts['clouds_evicted'] += 1
-            return 'peer_evicted'
-        self.counts['clouds_received'] += 1
-        self.counts['cloud_bytes_received'] += 12 * len(reply.cloud.points) + 36
-        self.counts['cloud_wait_ms_total'] += int((time.monotonic() - t0) * 1e3)
-        return reply.cloud
+        return self._fetches.finish(pending, self._send_request)
 
-    def _send(self, pub: Any, msg: Any) -> None:
-        raw = encode(msg)
+    def fetch(self, robot: int, index: int, stamp_ns: int) -> KeyframeCloud | Reason:
+        """:meth:`request` and :meth:`collect` in one call (blocks up to the timeout)."""
+        return self.collect(self.request(robot, index, stamp_ns))
+
+    def _send(self, pub: Any, topic: str, msg: Message) -> None:
         out = UInt8MultiArray()
-        out.data = raw
-        pub.publish(out)
+        with self._send_locks[topic]:  # sealed stamps must go out in order
+            out.data = self._guard.seal(topic, encode(msg))
+            pub.publish(out)
 
     # -- receiving ---------------------------------------------------------------------------
 
-    def _decode(self, msg: UInt8MultiArray) -> Any:
+    def _warn(self, kind: str, text: str) -> None:
+        """Log ``text`` unless a warning of ``kind`` was logged less than _WARN_SEC ago."""
+        now = time.monotonic()
+        if now - self._warned.get(kind, -_WARN_SEC) >= _WARN_SEC:
+            self._warned[kind] = now
+            self.node.get_logger().warning(
+                f'peer message refused ({kind}, {self.counts[kind]} so far): {text}')
+
+    def _receive(self, topic: str, msg: UInt8MultiArray, max_bytes: int) -> Message | None:
+        """Size check, authentication, decoding, identity and admission of one message."""
+        data = msg.data
+        if self._note_size is not None:
+            self._note_size(len(data))
+        if len(data) > max_bytes + _ENVELOPE:
+            self.counts['oversized'] += 1
+            self._subs[topic].request()
+            self._warn('oversized', f'{len(data)} bytes on {topic} (at most {max_bytes})')
+            return None
+        raw = bytes(data)
         try:
-            return decode(bytes(msg.data))
+            sender, inner = self._guard.open(topic, raw)
+            if sender == self.robot:
+                return None  # our own message, back on our own subscription
+            m = decode(inner, self.max_cloud_points)
+            robot = _robot_of(m)
+            if robot == self.robot:
+                return None  # this robot's id: our own message, or a forgery
+            if sender is not None and sender != robot:
+                raise Refused('sender_mismatch', f'robot {sender} sent a message of robot '
+                                                 f'{robot}')
+            self._guard.admit(robot)
+        except Refused as r:
+            self.counts[r.kind] += 1
+            self._warn(r.kind, f'{r} (on {topic})')
+            return None
         except PeerMessageError as err:
             self.counts['malformed'] += 1
-            self.node.get_logger().warning(f'peer message ignored: {err}',
-                                           throttle_duration_sec=_WARN_SEC)
+            self._warn('malformed', f'{err} (on {topic})')
             return None
+        return m
 
     def _on_descriptor(self, msg: UInt8MultiArray) -> None:
-        d = self._decode(msg)
+        d = self._receive(DESCRIPTOR_TOPIC, msg, MAX_DESCRIPTOR_BYTES)
         if d is None:
             return
         if not isinstance(d, DescriptorMessage):
             self.counts['malformed'] += 1
             return
-        if d.robot == self.robot:
+        if not self._guard.allow_descriptor(d.robot):
+            self.counts['rate_limited'] += 1
+            self._warn('rate_limited', f'robot {d.robot} sends descriptors faster than '
+                                       'peer_descriptor_rate')
             return
-        self.robots[d.robot] = time.monotonic()
         if d.fingerprint != self.fingerprint:
             self.counts['descriptors_refused'] += 1
-            if d.robot not in self._refused:
-                self._refused.add(d.robot)
-                self.node.get_logger().warning(
-                    f'robot {d.robot} describes scans with other settings (fingerprint '
-                    f'{d.fingerprint}, ours {self.fingerprint}): its keyframes are not stored')
-            return
-        key = (d.robot, d.index)
-        if key in self._seen:
-            self.counts['descriptors_repeated'] += 1
+            self._warn('descriptors_refused', f'robot {d.robot} describes scans with other '
+                                              f'settings (fingerprint {d.fingerprint}, ours '
+                                              f'{self.fingerprint}): its keyframes are not '
+                                              'stored')
             return
         try:
-            self._add(d)
+            stored = self._add(d)
         except Exception as err:  # a bad peer keyframe must not stop the node
             self.counts['malformed'] += 1
-            self.node.get_logger().warning(f'peer keyframe of robot {d.robot} refused: {err}',
-                                           throttle_duration_sec=_WARN_SEC)
+            self._warn('malformed', f'peer keyframe of robot {d.robot} refused: {err}')
             return
-        self._seen[key] = None
-        if len(self._seen) > _SEEN_LIMIT:
-            self._seen.popitem(last=False)
-        self.counts['descriptors_stored'] += 1
+        self.counts['descriptors_stored' if stored else 'descriptors_repeated'] += 1
 
     def _on_request(self, msg: UInt8MultiArray) -> None:
-        req = self._decode(msg)
-        if isinstance(req, (CloudRequest, CatchUpRequest)) and req.requester != self.robot:
-            self.robots[req.requester] = time.monotonic()
+        req = self._receive(REQUEST_TOPIC, msg, _REQUEST_BYTES)
         if isinstance(req, CloudRequest):
             if req.owner != self.robot:
                 return
-            cloud = self._own_cloud(req.index)
-            self._send(self._pub_reply, CloudReply(self.robot, req.requester, req.index,
-                                                   req.request_id, cloud))
+            if not self._guard.allow_request(req.requester):
+                self.counts['rate_limited'] += 1
+                self._warn('rate_limited', f'robot {req.requester} asks for clouds faster '
+                                           'than peer_request_rate')
+                return
+            cloud = self._own_cloud(req.index, req.stamp_ns)
+            self._send(self._pub_reply, REPLY_TOPIC, CloudReply(
+                self.robot, req.requester, req.index, req.request_id, req.stamp_ns, cloud))
             self.counts['clouds_served' if cloud is not None else 'clouds_missing'] += 1
         elif isinstance(req, CatchUpRequest):
-            now = time.monotonic()
-            if req.requester == self.robot or now - self._answered.get(
-                    req.requester, -math.inf) < _CATCHUP_GAP_SEC:
+            if not self._guard.allow_catchup(req.requester):
+                self.counts['catchups_refused'] += 1
                 return
-            self._answered[req.requester] = now
             rows = self._own_keyframes(min(req.limit, self.catchup))
             for index, stamp, r, a, pose in rows:
-                self._send(self._pub_desc, DescriptorMessage(
+                self._send(self._pub_desc, DESCRIPTOR_TOPIC, DescriptorMessage(
                     self.robot, index, stamp, self.fingerprint, r.astype(np.float32),
                     a.astype(np.float32), None if pose is None else tuple(pose.tolist())))
             self.counts['catchup_descriptors_sent'] += len(rows)
@@ -264,30 +337,41 @@ class PeerLink:
             self.counts['malformed'] += 1
 
     def _on_reply(self, msg: UInt8MultiArray) -> None:
-        rep = self._decode(msg)
+        if reply_requester(bytes(msg.data[:TAG_BYTES + 64])) not in (None, self.robot):
+            if self._note_size is not None:
+                self._note_size(len(msg.data))
+            if len(msg.data) > reply_bytes(self.max_cloud_points) + _ENVELOPE:
+                self._subs[REPLY_TOPIC].request()
+            return  # a reply to another robot: not even authenticated
+        rep = self._receive(REPLY_TOPIC, msg, reply_bytes(self.max_cloud_points))
         if not isinstance(rep, CloudReply):
             if rep is not None:
                 self.counts['malformed'] += 1
             return
-        if rep.requester != self.robot:
-            return
-        self.robots[rep.owner] = time.monotonic()
-        with self._lock:
-            waiting = self._pending.get(rep.request_id)
-        if waiting is None:
-            self.counts['late_replies'] += 1
-            return
-        done, box = waiting
-        box.append(rep)
-        done.set()
+        if rep.requester == self.robot:
+            self._fetches.deliver(rep)
 
     def diagnostics(self) -> dict[str, object]:
-        """Counters and peers for /diagnostics (keys prefixed ``peer_``)."""
+        """Counters and peers for /diagnostics (keys prefixed ``peer_``; bounded size)."""
         now = time.monotonic()
         out: dict[str, object] = {f'peer_{k}': v for k, v in sorted(self.counts.items())}
-        out['peer_robots'] = ','.join(
-            f'{r}({now - t:.0f}s)' for r, t in sorted(self.robots.items())) or 'none'
+        robots = sorted(self._guard.robots().items(), key=lambda rt: -rt[1])
+        listed = ','.join(f'{r}({now - t:.0f}s)' for r, t in sorted(robots[:_LISTED_ROBOTS]))
+        more = len(robots) - _LISTED_ROBOTS
+        out['peer_robots'] = (listed + (f' (+{more} more)' if more > 0 else '')) or 'none'
+        out['peer_robots_dropped'] = self._guard.dropped_robots
+        out['peer_authenticated'] = 'yes' if self.authenticated else 'no'
+        out['peer_requests_pending'] = self._fetches.pending
         return out
+
+
+def _robot_of(m: Message) -> int:
+    """The robot a message speaks for: descriptor's robot, requester or reply owner."""
+    if isinstance(m, CloudReply):
+        return m.owner
+    if isinstance(m, DescriptorMessage):
+        return m.robot
+    return m.requester
 
 
 def _unit(v: npt.ArrayLike) -> npt.NDArray[np.float32]:

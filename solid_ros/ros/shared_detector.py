@@ -4,27 +4,45 @@ Stage 1 (describe, search, store) and stage 2 (verify) each hold their lock whil
 detector, so one keyframe is described while the one before it is verified; saving, resetting
 and reconfiguring take both. Peer robots' keyframes are stored under the stage-1 lock, like
 this robot's descriptors. No ROS import: the node and its tests hand it plain values.
+
+No lock is ever held across a network wait: the clouds of peers' keyframes a proposal needs
+are fetched before stage 2 takes its lock (:meth:`SharedDetector.fetch_clouds`); the detector
+then reads them from what was fetched, so saving, resetting and peers' requests never wait
+for another robot.
 """
 
 from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import CloudFetcher, LoopCandidate, LoopDetector, Proposal, ScanResult
+from solid_ros.core.detector import LoopCandidate, LoopDetector, Proposal, ScanResult
 from solid_ros.core.keyframes import KeyframeCloud
 from solid_ros.core.mapping import keyframe_clouds
+from solid_ros.core.persistence import backup_if_shrinking
 from solid_ros.core.proposals import GraphHint
+from solid_ros.core.reasons import Reason
 from solid_ros.formats.peers import DescriptorMessage
 
-__all__ = ['SharedDetector']
+__all__ = ['CloudSource', 'IN_FLIGHT', 'SharedDetector']
 
 FloatArray = npt.NDArray[np.float64]
+IN_FLIGHT = 8  # cloud requests out at once (the reply topic keeps 10)
+
+
+class CloudSource(Protocol):
+    """Where peers' keyframe clouds come from (:class:`~solid_ros.ros.peers.PeerLink`)."""
+
+    def request(self, robot: int, index: int, stamp_ns: int) -> Any:
+        """Send a request now; what it returns goes to :meth:`collect`."""
+
+    def collect(self, ticket: Any) -> KeyframeCloud | Reason:
+        """Wait for a request's cloud (or the reason there is none)."""
 
 
 class SharedDetector:
@@ -36,7 +54,9 @@ class SharedDetector:
 
     def __init__(self, detector: LoopDetector) -> None:
         self._detector = detector
-        self._fetch_cloud: CloudFetcher | None = None
+        self._loaded = self._loaded_sessions(detector)
+        self._source: CloudSource | None = None
+        self._fetched: dict[tuple[int, int, int], KeyframeCloud | Reason] = {}
         self._describe_lock = threading.Lock()
         self._verify_lock = threading.Lock()
 
@@ -50,9 +70,16 @@ class SharedDetector:
         """Scans in its database."""
         return int(self._detector.database.size)
 
-    def set_fetch_cloud(self, fetch: CloudFetcher | None) -> None:
+    def set_cloud_source(self, source: CloudSource | None) -> None:
         """Where clouds of other robots' keyframes come from, for this and later detectors."""
-        self._fetch_cloud = self._detector.fetch_cloud = fetch
+        self._source = source
+        self._detector.fetch_cloud = self._collected if source is not None else None
+
+    @staticmethod
+    def _loaded_sessions(detector: LoopDetector) -> set[int]:
+        # As the detector decides: sessions stored before any peer's (their clouds came
+        # with the file or not at all; they are never asked for).
+        return detector.database.sessions() - {detector.config.session_id}
 
     # -- the two stages ----------------------------------------------------------------------
 
@@ -61,14 +88,47 @@ class SharedDetector:
         with self._describe_lock:
             return self._detector.propose(points, stamp_ns, pose=pose)
 
+    def fetch_clouds(self, proposal: Proposal) -> dict[tuple[int, int, int],
+                                                        KeyframeCloud | Reason]:
+        """The clouds of peers' keyframes among the proposal's candidates that are not stored
+        here, fetched without holding a lock: requests go out ``IN_FLIGHT`` at a time (all
+        fit in the reply topic's history) and are collected together, so a keyframe waits at
+        most one time-out per batch, however many candidates it has."""
+        source, det = self._source, self._detector
+        if source is None or det.verifier is None:
+            return {}
+        own = det.config.session_id
+        wanted: list[tuple[int, int, int]] = []
+        for hit in proposal.hits:
+            m = hit.match
+            key = (m.session, m.index, m.stamp_ns)
+            if not (m.session == own or m.session in self._loaded or key in wanted
+                    or m.seq in det.clouds):
+                wanted.append(key)
+        out: dict[tuple[int, int, int], KeyframeCloud | Reason] = {}
+        for i in range(0, len(wanted), IN_FLIGHT):
+            batch = [(key, source.request(*key)) for key in wanted[i:i + IN_FLIGHT]]
+            out.update((key, source.collect(ticket)) for key, ticket in batch)
+        return out
+
     def verify(self, proposal: Proposal,
                hint: GraphHint | None = None) -> tuple[ScanResult, LoopDetector]:
-        """Stage 2: :meth:`LoopDetector.verify` (with the pose graph's ``hint``) under the
-        stage-2 lock; also returns the detector that verified (a reset may replace it right
-        after)."""
+        """Stage 2: fetch the proposal's peer clouds (:meth:`fetch_clouds`) without a lock,
+        then :meth:`LoopDetector.verify` (with the pose graph's ``hint``) under the stage-2
+        lock; also returns the detector that verified (a reset may replace it right after)."""
+        fetched = self.fetch_clouds(proposal)
         with self._verify_lock:
             detector = self._detector
-            return detector.verify(proposal, hint), detector
+            self._fetched = fetched
+            try:
+                return detector.verify(proposal, hint), detector
+            finally:
+                self._fetched = {}
+
+    def _collected(self, robot: int, index: int, stamp_ns: int) -> KeyframeCloud | Reason:
+        """The detector's ``fetch_cloud``: only what was fetched before the lock (a cloud
+        stored then and dropped since counts as timed out; that takes a reset between)."""
+        return self._fetched.get((robot, index, stamp_ns), 'peer_timeout')
 
     def match_position(self, cand: LoopCandidate, proposal: Proposal,
                        detector: LoopDetector) -> FloatArray | None:
@@ -98,15 +158,18 @@ class SharedDetector:
     def replace(self, detector: LoopDetector) -> None:
         """Continue with ``detector`` (``~/reset``); it fetches peer clouds as before."""
         with self._describe_lock, self._verify_lock:
-            if self._fetch_cloud is not None:
-                detector.fetch_cloud = self._fetch_cloud
+            if self._source is not None:
+                detector.fetch_cloud = self._collected
+            self._loaded = self._loaded_sessions(detector)
             self._detector = detector
 
-    def save(self, path: str,
-             map_poses: dict[tuple[int, int], FloatArray] | None = None) -> int:
+    def save(self, path: str, map_poses: dict[tuple[int, int], FloatArray] | None = None
+             ) -> tuple[int, Path | None]:
         """Save the database to ``path`` (its folder made; the core writes a temporary file
         and renames it over ``path``), with the back end's map-frame poses when given; return
-        the scans saved.
+        the scans saved and, when the save would have replaced a database with an empty or
+        much smaller one, the backup kept of it
+        (:func:`~solid_ros.core.persistence.backup_if_shrinking`).
 
         Raises:
             SolidError, OSError: nothing was saved.
@@ -115,24 +178,31 @@ class SharedDetector:
         with self._describe_lock, self._verify_lock:
             size = self.size
             target.parent.mkdir(parents=True, exist_ok=True)
+            backup = backup_if_shrinking(target, size)
             self._detector.save(target, map_poses or None)
-        return size
+        return size, backup
 
     # -- peer robots (see solid_ros.ros.peers) -----------------------------------------------
 
-    def add_peer_keyframe(self, d: DescriptorMessage) -> None:
-        """Store another robot's keyframe descriptor (raises SolidError if refused)."""
+    def add_peer_keyframe(self, d: DescriptorMessage) -> bool:
+        """Store another robot's keyframe descriptor; False when it is already stored
+        (raises SolidError if refused)."""
         with self._describe_lock:
+            if self._detector.database.has_foreign(d.robot, d.index):
+                return False
             self._detector.add_peer_keyframe(d.robot, d.index, d.stamp_ns, d.r_solid,
                                              d.heading, d.pose)
+            return True
 
-    def own_cloud(self, index: int) -> KeyframeCloud | None:
-        """This robot's stored cloud of keyframe ``index``, or None."""
-        # Not under the stage-2 lock: the verify thread may hold it while it waits for a
-        # peer's reply, and this runs on the executor that delivers that reply.
+    def own_cloud(self, index: int, stamp_ns: int) -> KeyframeCloud | None:
+        """This robot's stored cloud of keyframe ``index`` if it is stamped ``stamp_ns``,
+        else None (a request naming another stamp is not for this keyframe)."""
         with self._describe_lock:
-            seq = self._detector.database.own_seq(index)
-        return None if seq is None else self._detector.clouds.get(seq)
+            db = self._detector.database
+            seq = db.own_seq(index)
+            if seq is None or db.match_info(seq)[2] != stamp_ns:
+                return None
+        return self._detector.clouds.get(seq)
 
     def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
                                                       FloatArray | None]]:

@@ -26,6 +26,11 @@ class NodeStats:
     without_odom: int = 0
     verify_skipped: int = 0
     inter_robot_loops: int = 0
+    downsampled: int = 0
+    odom_rejected: int = 0
+    stamps_zero: int = 0
+    stamps_repeated: int = 0
+    stamps_backward: int = 0
 
 
 class StageTimings:

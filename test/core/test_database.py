@@ -197,8 +197,60 @@ def test_import_refuses_same_session_id() -> None:
     old = _db(session_id=4)
     _fill(old, _random(3))
     new = _db(session_id=4)
-    with pytest.raises(DatabaseError, match='session_id 4.*e.g. 5'):
+    with pytest.raises(DatabaseError, match='session_id 4.*e.g. 0'):
         new.import_arrays(old.export_arrays())
+
+
+def test_import_suggests_a_valid_free_session_id_and_refuses_ids_out_of_range() -> None:
+    top = 2**31 - 1
+    old = _db(session_id=top)
+    _fill(old, _random(3))
+    arrays = old.export_arrays()
+    with pytest.raises(DatabaseError, match=f'session_id {top}.*e.g. 0\\)') as err:
+        _db(session_id=top).import_arrays(arrays)
+    assert str(2**31) not in str(err.value)
+    arrays['sessions'] = np.array([0, 1, 2], dtype=np.int32)
+    with pytest.raises(DatabaseError, match=r'e\.g\. 3\)'):
+        _db(session_id=1).import_arrays(arrays)
+    arrays['sessions'] = np.array([0, -7, 2], dtype=np.int32)
+    with pytest.raises(DatabaseError, match='session id -7, outside 0 to 2147483647'):
+        _db(session_id=5).import_arrays(arrays)
+
+
+@pytest.mark.parametrize('search', ['brute', 'kdtree'])
+def test_peer_scans_never_evict_this_sessions_scans(search: str) -> None:
+    """A flood of peer keyframes fills the peers' own ring only; repeats are refused."""
+    cfg = SolidConfig().replace(search=search, kdtree_rebuild_every=4, session_id=0,
+                                capacity=50, peer_capacity=20)
+    db = DescriptorDatabase(cfg)
+    rng = np.random.default_rng(8)
+    mine = rng.random((10, 40))
+    for i in range(10):
+        db.add(mine[i], np.ones(60), i * SEC)
+    flood = rng.random((500, 40))
+    for i in range(500):
+        db.add_foreign(1 + i % 7, i, flood[i], np.ones(60), i * SEC)
+    assert db.size == 30 and db.peer_size == 20 and db.session_count == 10
+    for i in range(10):  # every own scan is still found, at distance 0
+        best = db.search(mine[i], 100 * SEC, k=1)[0]
+        assert (best.session, best.index, best.distance) == (0, i, pytest.approx(0.0, abs=1e-6))
+    assert db.has_foreign(1 + 499 % 7, 499) and not db.has_foreign(1, 0)
+    with pytest.raises(DatabaseError, match='already stored'):
+        db.add_foreign(1 + 499 % 7, 499, flood[499], np.ones(60), 0)
+    # An evicted peer scan may come again (a catch-up after it left the ring).
+    seq = db.add_foreign(1, 0, flood[0], np.ones(60), 0)
+    assert db.is_stored(seq) and db.match_info(seq) == (0, 1, 0)
+    # A peer sending this robot's own descriptor ties at distance 0: this robot's ranks first.
+    db.add_foreign(3, 10**6, mine[4], np.ones(60), 0)
+    hits = db.search(mine[4], 100 * SEC, k=2)
+    assert [(h.session, h.index) for h in hits] == [(0, 4), (3, 10**6)]
+    # Saved rows: own scans first, then the peers'.
+    arrays = db.export_arrays()
+    assert list(arrays['sessions'][:10]) == [0] * 10 and len(arrays['sessions']) == 30
+    assert db.stored_seqs()[:10] == list(range(10))
+    with pytest.raises(DatabaseError, match='peer_capacity is 0'):
+        DescriptorDatabase(cfg.replace(peer_capacity=0)).add_foreign(1, 0, mine[0],
+                                                                     np.ones(60), 0)
 
 
 @pytest.mark.parametrize('search', ['brute', 'kdtree'])

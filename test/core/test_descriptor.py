@@ -129,6 +129,7 @@ def test_constant_elevation_counts_keep_information() -> None:
     assert describe(pts, cfg).r_solid.sum() > 0
 
 
+@pytest.mark.slow
 def test_five_million_points_are_deterministic() -> None:
     rng = np.random.default_rng(7)
     pts = rng.normal(0.0, 25.0, (5_000_000, 3)).astype(np.float32)

@@ -26,6 +26,7 @@ from solid_ros.core.errors import DatabaseError
 from solid_ros.core.geometry import matrix_to_vector, rpy_matrix
 from solid_ros.core.persistence import (
     FORMAT,
+    backup_if_shrinking,
     check_save_target,
     is_database,
     load_database,
@@ -441,3 +442,59 @@ def test_detector_saves_the_map_poses_it_is_given(tmp_path: Path) -> None:
     prior = read_map_poses(tmp_path / 'db.npz')
     assert list(prior.poses) == [(0, 2)]
     np.testing.assert_allclose(prior.poses[(0, 2)], _map_pose(2), atol=1e-9)
+def test_a_shrinking_save_keeps_the_larger_database_as_a_backup(tmp_path: Path) -> None:
+    """~/reset then ~/save_database must not wear a saved map away: the node calls
+    backup_if_shrinking before each save."""
+    target = tmp_path / 'map.npz'
+    big = _filled(40)
+    save_database(big, target)
+    assert backup_if_shrinking(target, 30) is None  # not much smaller: no backup
+    assert backup_if_shrinking(tmp_path / 'absent.npz', 0) is None
+    backup = backup_if_shrinking(target, 0)
+    assert backup == tmp_path / 'map.npz.bak'
+    save_database(DescriptorDatabase(SolidConfig()), target)  # the empty one replaces it
+    assert read_database(target)[0]['count'] == 0
+    assert read_database(backup)[0]['count'] == 40
+    # The next shrink (10 scans -> 0) keeps the 40-scan backup, as does a save of nothing.
+    save_database(_filled(10), target)
+    assert backup_if_shrinking(target, 0) == backup
+    assert read_database(backup)[0]['count'] == 40
+    assert backup_if_shrinking(tmp_path / 'map.npz', 0) == backup
+    # A backup slot taken by something else is never replaced: the save is refused.
+    other = tmp_path / 'other.npz'
+    save_database(_filled(10), other)
+    (tmp_path / 'other.npz.bak').write_text('not a database')
+    with pytest.raises(DatabaseError, match='not a solid_ros database'):
+        backup_if_shrinking(other, 0)
+
+
+def test_peer_scans_are_saved_after_this_sessions_with_their_clouds(tmp_path: Path) -> None:
+    from solid_ros.core.keyframes import CloudStore, KeyframeCloud
+
+    db = _filled(5, peer_capacity=10)
+    clouds = CloudStore(100, 10**9)
+    rng = np.random.default_rng(3)
+    seq = db.add_foreign(7, 42, rng.random(40), rng.random(60), 3 * SEC)
+    clouds.put(seq, KeyframeCloud(np.ones((4, 3), np.float32), 2))
+    clouds.put(db.oldest_seq, KeyframeCloud(np.zeros((3, 3), np.float32), 1))
+    path = save_database(db, tmp_path / 'db.npz', clouds)
+    meta, arrays = read_database(path)
+    assert meta['sessions'] == [0, 7] and list(arrays['indices'][-1:]) == [42]
+    assert list(np.diff(arrays['cloud_offsets'])) == [3, 0, 0, 0, 0, 4]
+    loaded = CloudStore(100, 10**9)
+    again = load_database(path, db.config.replace(session_id=1), loaded)
+    assert again.size == 6 and len(loaded) == 2
+
+
+def test_stored_session_ids_out_of_range_are_refused_in_one_line(tmp_path: Path) -> None:
+    path = save_database(_filled(3), tmp_path / 'db.npz')
+    meta, arrays = read_database(path)
+    arrays['sessions'][1] = -2
+    bad = tmp_path / 'bad.npz'
+    meta['sessions'] = [-2, 0]
+    arrays['meta'] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(bad, **arrays)
+    with pytest.raises(DatabaseError) as err:
+        load_database(bad, SolidConfig().replace(session_id=1))
+    assert str(err.value) == (f'{bad}: the saved database holds session id -2, outside 0 to '
+                              '2147483647: not a database this version wrote')

@@ -350,3 +350,17 @@ def test_keyframes_carry_what_rebuilds_the_chain() -> None:
     np.testing.assert_allclose(np.array([k.pose for k in kfs]), odo, atol=1e-6)
     pg.reset()
     assert pg.keyframes() == [] and np.array_equal(pg.correction(), np.eye(4))
+
+
+def test_a_long_loop_free_chain_stays_solvable() -> None:
+    # 1,700 one-metre steps sideways while turning: the heading's uncertainty swings lever arms
+    # of a kilometre; a Cholesky iSAM2 called this indeterminant at keyframe 1,657.
+    pg = PoseGraph(CFG)
+    for k in range(1700):
+        T = np.eye(4)
+        T[:3, :3] = rot_z(k * 0.01)
+        T[0, 3] = float(k)
+        state = pg.update(ScanResult(k * SEC, True, k, matrix_to_vector(T)),
+                          OdomSample(k * SEC, T))
+    assert state.added and state.covariance is not None and pg.rebuilds == 0
+    assert np.all(np.isfinite(state.covariance))

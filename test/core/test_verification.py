@@ -383,6 +383,7 @@ def _published(sensor: str, preset: str, route: str, scene: str,
     return out
 
 
+@pytest.mark.slow
 def test_no_loop_on_lookalike_streets_without_a_revisit_through_a_90_degree_clip() -> None:
     # 120 scans (240 m) of look-alike streets never visited twice; this stretch published two
     # false loops (166-95, 174-80) before the structure conflict.
@@ -390,6 +391,7 @@ def test_no_loop_on_lookalike_streets_without_a_revisit_through_a_90_degree_clip
                       list(range(60, 180))) == []
 
 
+@pytest.mark.slow
 def test_avia_revisit_of_lookalike_streets_publishes_only_correct_loops() -> None:
     # The first street (scans 0-39), other streets (60-99), then scans 148-175 drive the
     # first street again (revisits of scans 0-26, labelled by the simulator).

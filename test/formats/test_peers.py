@@ -11,9 +11,16 @@ from solid_ros.formats.peers import (
     CloudReply,
     CloudRequest,
     DescriptorMessage,
+    PeerAuthError,
     PeerMessageError,
     decode,
     encode,
+    is_sealed,
+    key_id,
+    reply_bytes,
+    reply_requester,
+    seal,
+    unseal,
 )
 
 RNG = np.random.default_rng(2)
@@ -36,14 +43,22 @@ def test_descriptor_round_trip_and_size() -> None:
 
 
 def test_requests_and_replies_round_trip() -> None:
-    for msg in (CloudRequest(1, 2, 99, 5), CatchUpRequest(3, 1000),
-                CloudReply(2, 1, 99, 5, None)):
+    for msg in (CloudRequest(1, 2, 99, 5, 123), CatchUpRequest(3, 1000),
+                CloudReply(2, 1, 99, 5, 123, None)):
         assert decode(encode(msg)) == msg
+    assert len(encode(CloudRequest(1, 2, 99, 5, 123))) == 36
     cloud = KeyframeCloud(RNG.normal(size=(500, 3)).astype(np.float32), 200)
-    got = decode(encode(CloudReply(2, 1, 99, 5, cloud)))
+    got = decode(encode(CloudReply(2, 1, 99, 5, 123, cloud)))
     assert isinstance(got, CloudReply) and got.cloud is not None
+    assert (got.owner, got.requester, got.index, got.request_id, got.stamp_ns) == (
+        2, 1, 99, 5, 123)
     assert got.cloud.n_struct == 200 and np.array_equal(got.cloud.points, cloud.points)
-    assert len(encode(CloudReply(2, 1, 99, 5, cloud))) == 36 + 12 * 500
+    raw = encode(CloudReply(2, 1, 99, 5, 123, cloud))
+    assert len(raw) == reply_bytes(500) == 44 + 12 * 500
+    assert reply_requester(raw[:100]) == 1 and reply_requester(encode(DESC)) is None
+    # A receiver's cap refuses a bigger cloud before reading its points.
+    with pytest.raises(PeerMessageError, match='at most 499 points'):
+        decode(raw, max_cloud_points=499)
 
 
 def test_malformed_messages_are_refused() -> None:
@@ -53,15 +68,19 @@ def test_malformed_messages_are_refused() -> None:
     bad = {
         'empty': b'',
         'kind': b'XXXX\x01' + good[5:],
-        'version': good[:4] + b'\x02' + good[5:],
+        'version': good[:4] + b'\x01' + good[5:],
         'truncated': good[:-3],
         'padded': good + b'\x00',
         'nan': bytes(nan),
         'sizes': good[:36] + (0).to_bytes(2, 'little') + good[38:],
         'fingerprint-only': good[:40],
-        'reply-count': encode(CloudReply(2, 1, 9, 5, KeyframeCloud(
+        'reply-count': encode(CloudReply(2, 1, 9, 5, 0, KeyframeCloud(
             np.zeros((4, 3), np.float32), 9))),
-        'negative index': encode(CloudRequest(1, 2, -4, 1)),
+        'negative index': encode(CloudRequest(1, 2, -4, 1, 0)),
+        'negative robot': encode(DescriptorMessage(**{**DESC.__dict__, 'robot': -3})),
+        'negative requester': encode(CloudRequest(-1, 2, 4, 1, 0)),
+        'negative owner': encode(CloudReply(-5, 1, 9, 5, 0, None)),
+        'sealed without a key': seal(good, b'k' * 32, 7, 1, '/solid/descriptors'),
     }
     for name, raw in bad.items():
         with pytest.raises(PeerMessageError):
@@ -76,3 +95,32 @@ def test_malformed_messages_are_refused() -> None:
             decode(bytes(raw))
         except PeerMessageError:
             pass
+
+
+KEY = b'0123456789abcdef0123456789abcdef'
+
+
+def test_sealed_messages_authenticate_their_bytes_and_topic() -> None:
+    inner = encode(DESC)
+    raw = seal(inner, KEY, 7, 1_700_000_000_000_000_000, '/solid/descriptors')
+    assert is_sealed(raw) and len(raw) == 20 + len(inner) + 32
+    opened = unseal(raw, KEY, '/solid/descriptors')
+    assert (opened.sender, opened.stamp_ns, opened.inner) == (7, 1_700_000_000_000_000_000,
+                                                              inner)
+    with pytest.raises(PeerAuthError):
+        unseal(raw, b'another key of 32 bytes, or so..', '/solid/descriptors')
+    with pytest.raises(PeerAuthError):  # moved to another topic
+        unseal(raw, KEY, '/solid/clouds')
+    for pos in (0, 8, 12, 30, len(raw) - 40, len(raw) - 1):  # any byte changed
+        bad = bytearray(raw)
+        bad[pos] ^= 0x01
+        with pytest.raises(PeerMessageError):
+            unseal(bytes(bad), KEY, '/solid/descriptors')
+    with pytest.raises(PeerMessageError):
+        unseal(inner, KEY, '/solid/descriptors')  # not sealed at all
+    with pytest.raises(PeerMessageError):
+        unseal(raw[:30], KEY, '/solid/descriptors')
+    # A reply to another robot is recognised inside its envelope without the key.
+    reply = seal(encode(CloudReply(2, 9, 1, 5, 3, None)), KEY, 2, 1, '/solid/clouds')
+    assert reply_requester(reply) == 9
+    assert len(key_id(KEY)) == 8 and key_id(KEY) not in KEY.hex()

@@ -159,7 +159,8 @@ def test_summary_and_values_keep_their_keys_and_order() -> None:
         'points_topic', 'seconds_since_last_cloud', 'odom_topic', 'seconds_since_last_odom',
         'odom_stamp_offset_sec', 'clouds_rejected_recently', 'last_reject_reason', 'problems',
         'clouds_received', 'clouds_processed', 'clouds_skipped', 'clouds_rejected',
-        'clouds_failed', 'clouds_without_odom', 'loop_candidates']
+        'clouds_failed', 'clouds_without_odom', 'loop_candidates', 'clouds_downsampled',
+        'odom_rejected', 'cloud_stamps_zero', 'cloud_stamps_repeated', 'cloud_stamps_backward']
     assert values['seconds_since_last_cloud'] == '1.5'
     assert values['seconds_since_last_odom'] == 'never'
     assert values['odom_stamp_offset_sec'] == 'nan' and values['problems'] == 'none'
@@ -176,3 +177,30 @@ def test_the_window_is_configurable(window: float) -> None:
     assert set(health.problems()) == {'failed'}
     clock.advance(0.02)
     assert set(health.problems()) == {'no_clouds'}  # the same window for silence
+
+
+def test_refused_odometry_and_untrusted_stamps_are_counted_warned_once_and_clear() -> None:
+    clock = FakeClock()
+    health = make(clock)
+    health.cloud_received()
+    health.odom_received()
+    first = health.odom_rejected('odometry pose is not finite')
+    assert first == ('odometry message on /odom refused: odometry pose is not finite (1 so far)')
+    assert health.odom_rejected('odometry covariance is not finite') is None  # throttled
+    line = health.untrusted_stamp('backward by 200.000 s', 5 * 10**9)
+    assert line == ('PointCloud2 on /points processed in arrival order: stamp 5.000 s is '
+                    'backward by 200.000 s (1 so far)')
+    assert health.untrusted_stamp('zero', 0) is None and health.untrusted_stamp('zero', 0) is None
+    problems = health.problems()
+    assert set(problems) == {'odom_rejected', 'cloud_stamps'}
+    assert '2 odometry messages refused so far' in problems['odom_rejected']
+    assert 'covariance is not finite' in problems['odom_rejected']
+    assert '3 PointCloud2 with stamps that cannot be trusted' in problems['cloud_stamps']
+    values = health.values(problems)
+    assert (values['odom_rejected'], values['cloud_stamps_zero'],
+            values['cloud_stamps_backward'], values['cloud_stamps_repeated']) == (2, 2, 1, 0)
+    clock.advance(6.0)
+    health.cloud_received()
+    health.odom_received()
+    assert health.problems() == {}  # the WARN clears, the counters stay
+    assert health.odom_rejected('odometry pose is not finite') is not None  # logged again

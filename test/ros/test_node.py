@@ -429,7 +429,8 @@ def _scene(seed: int) -> np.ndarray:
 
 def test_runtime_threshold_change(harness: Callable[..., Harness]) -> None:
     h = harness([Parameter('distance_threshold', value=0.0),
-                 Parameter('exclude_recent_frames', value=0)], params_file=None)
+                 Parameter('exclude_recent_frames', value=0),
+                 Parameter('allow_runtime_weakening', value=True)], params_file=None)
     scene = _scene(1)
     h.replay([('points', make_cloud(scene, 10**9)), ('points', make_cloud(scene, 2 * 10**9))])
     assert h.candidates == []  # nothing is below a threshold of 0

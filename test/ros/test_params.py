@@ -17,10 +17,12 @@ from rclpy.parameter import Parameter  # noqa: E402
 from solid_ros.core.config import NodeConfig, SolidConfig, param_specs  # noqa: E402
 from solid_ros.core.errors import ConfigError  # noqa: E402
 from solid_ros.ros.params import (  # noqa: E402
+    WEAKENS,
     apply_changes,
     declare_all,
     make_descriptor,
     unknown_overrides,
+    weakening,
 )
 
 PRESETS = sorted(CONFIG_DIR.glob('*.yaml'))
@@ -141,7 +143,8 @@ def test_unknown_parameter_in_file_is_rejected(context: Context, tmp_path: Path)
 def test_runtime_changes_validated_by_the_schema() -> None:
     solid, node_cfg = SolidConfig(), NodeConfig()
     new_solid, new_node = apply_changes(solid, node_cfg, [
-        Parameter('distance_threshold', value=0.12), Parameter('odom_tolerance_sec', value=0.2)])
+        Parameter('distance_threshold', value=0.12), Parameter('odom_tolerance_sec', value=0.2)],
+        allow_weakening=True)
     assert new_solid.distance_threshold == 0.12
     assert new_node.odom_tolerance_sec == 0.2
     assert solid.distance_threshold == SolidConfig().distance_threshold
@@ -153,3 +156,25 @@ def test_runtime_changes_validated_by_the_schema() -> None:
         apply_changes(solid, node_cfg, [Parameter('nonsense', value=1)])
     with pytest.raises(ConfigError, match='database_save_path.*read-only'):
         apply_changes(solid, node_cfg, [Parameter('database_save_path', value='/etc/passwd')])
+
+
+def test_every_runtime_setting_has_a_direction_and_weakening_is_refused() -> None:
+    tunable = {s.name for s in param_specs() if not s.read_only}
+    assert tunable == set(WEAKENS), tunable ^ set(WEAKENS)
+    solid, node_cfg = SolidConfig(), NodeConfig()
+    with pytest.raises(ConfigError, match=r'distance_threshold: 0\.03 -> 0\.5 would weaken'):
+        apply_changes(solid, node_cfg, [Parameter('distance_threshold', value=0.5)])
+    with pytest.raises(ConfigError, match='verify_min_overlap.*allow_runtime_weakening'):
+        apply_changes(solid, node_cfg, [Parameter('verify_min_overlap', value=0.1)])
+    # Several at once: one weakening change refuses them all.
+    with pytest.raises(ConfigError, match='verify_max_conflict'):
+        apply_changes(solid, node_cfg, [Parameter('distance_threshold', value=0.01),
+                                        Parameter('verify_max_conflict', value=0.5)])
+    tighter, _ = apply_changes(solid, node_cfg, [Parameter('distance_threshold', value=0.01),
+                                                 Parameter('verify_min_spread', value=0.01)])
+    assert (tighter.distance_threshold, tighter.verify_min_spread) == (0.01, 0.01)
+    assert weakening('odom_check_drift', 0.1, 0.0) and not weakening('odom_check_drift', 0.0,
+                                                                      0.05)
+    assert weakening('heading_match', 'full', 'overlap') and weakening('min_margin', 0.1, 0.0)
+    assert not weakening('exclude_recent_frames', 50, 60)
+    assert NodeConfig().allow_runtime_weakening is False

@@ -66,6 +66,7 @@ def _best_far_distances(scene: str, seed: int) -> np.ndarray:
     return out
 
 
+@pytest.mark.slow
 def test_lookalike_places_look_alike_to_the_descriptor() -> None:
     varied = np.concatenate([_best_far_distances('varied', s) for s in (0, 1)])
     alike = np.concatenate([_best_far_distances('lookalike', s) for s in (0, 1)])

@@ -69,6 +69,7 @@ def test_scan_by_index_equals_iteration(drive: Drive) -> None:
     assert pose.shape == (4, 4) and stamp == again.stamp_ns
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('index', [0, 57, 150, 400, 700])
 def test_scan_lands_on_the_scene(drive: Drive, index: int) -> None:
     scan = drive.scan(index)
@@ -270,6 +271,7 @@ def _recall(drive: Drive, scans: list[SimScan], fov: float,
     return out
 
 
+@pytest.mark.slow
 def test_recall_360(recall_scans: tuple[Drive, list[SimScan]]) -> None:
     drive, scans = recall_scans
     res = _recall(drive, scans, 360.0)
@@ -281,6 +283,7 @@ def test_recall_360(recall_scans: tuple[Drive, list[SimScan]]) -> None:
     assert np.mean(errors) < 2.0
 
 
+@pytest.mark.slow
 def test_recall_90_degree_clip(recall_scans: tuple[Drive, list[SimScan]]) -> None:
     drive, scans = recall_scans
     # The shipped 90-degree preset weights the heading signature by range: with the paper's

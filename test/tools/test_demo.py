@@ -13,6 +13,7 @@ from solid_ros.formats.bags import write_cloud_bag
 from solid_ros.tools import demo
 
 
+@pytest.mark.slow
 def test_demo_runs_end_to_end_and_reuses_its_cache(tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     cache, out = tmp_path / 'cache', tmp_path / 'out'

@@ -115,6 +115,7 @@ def test_best_matches_cover_rejected_queries(bags: dict[str, Path]) -> None:
     assert result.metrics is not None and result.metrics['f1_max'] == 1.0
 
 
+@pytest.mark.slow
 def test_outputs(tmp_path: Path, bags: dict[str, Path]) -> None:
     out = tmp_path / 'out'
     result = replay(bags['sqlite3'], TEST_CFG, out_dir=out, progress='quiet')
@@ -139,6 +140,7 @@ def test_outputs(tmp_path: Path, bags: dict[str, Path]) -> None:
         assert data[:8] == b'\x89PNG\r\n\x1a\n' and len(data) > 10_000
 
 
+@pytest.mark.slow
 def test_reference_from_pose_files(tmp_path: Path, bags: dict[str, Path],
                                    scans: list[tuple[np.ndarray, int, np.ndarray]]) -> None:
     kitti = tmp_path / 'poses.txt'
@@ -230,6 +232,7 @@ def test_help_explains_every_option(capsys: pytest.CaptureFixture[str]) -> None:
         assert action.help, action.dest
 
 
+@pytest.mark.slow
 def test_cli_runs_and_prints_summary(tmp_path: Path, bags: dict[str, Path],
                                      capsys: pytest.CaptureFixture[str]) -> None:
     params = tmp_path / 'p.yaml'
@@ -358,10 +361,14 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
                     times=hku / 'times.txt', out_dir=tmp_path, progress='quiet')
     assert result.messages == 314 and result.skipped == 0
     assert result.report['topic'] == '/points' and result.report['odom_topic'] == '/odom_slam'
-    # The replayed candidates are exactly those of the detector on the bag's clouds.
+    # The replayed candidates are exactly those of the loop closure (the detector with the
+    # pose graph's hint: the preset's back end is on) on the bag's clouds and odometry.
+    from solid_ros.core.closure import LoopClosure
+    from solid_ros.core.odometry import OdomSample
     from solid_ros.formats.bags import Bag
 
-    det = LoopDetector(cfg)
+    closure = LoopClosure(LoopDetector(cfg))
+    det = closure.detector
     want = []
     with Bag(hku / 'bag') as bag:
         odom = bag.odometry('/odom_slam')
@@ -369,7 +376,9 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
         poses = dict(zip(odom.stamps_ns.tolist(), odom.poses))
         for scan in bag.clouds('/points'):
             assert scan.points is not None
-            want += det.process(scan.points, scan.stamp_ns, pose=poses.get(scan.stamp_ns)).loops
+            pose = poses.get(scan.stamp_ns)
+            odom_sample = None if pose is None else OdomSample(scan.stamp_ns, pose)
+            want += closure.process(scan.points, scan.stamp_ns, odom_sample).scan.loops
     assert result.candidates == want
     # The preset's keyframe gating (0.5 m, 10 deg on the bag's odometry) keeps fewer scans.
     assert result.keyframes == det.num_keyframes < 314
@@ -549,6 +558,7 @@ def sim_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_cloud_bag(tmp_path_factory.mktemp('sim') / 'bag', items, 'mcap')
 
 
+@pytest.mark.slow
 def test_published_loops_carry_a_correct_relative_pose(tmp_path: Path, sim_bag: Path) -> None:
     out = tmp_path / 'out'
     result = replay(sim_bag, SIM_CFG, out_dir=out, progress='quiet')

@@ -60,6 +60,7 @@ def drive(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, np.ndar
     return write_cloud_bag(root / 'bag', items, 'mcap'), tum, np.array(ref)
 
 
+@pytest.mark.slow
 def test_loops_bring_the_drifting_odometry_back(tmp_path: Path,
                                                 drive: tuple[Path, Path, np.ndarray]) -> None:
     bag, tum, ref = drive
