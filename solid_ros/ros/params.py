@@ -10,7 +10,8 @@ Runtime changes come from any participant of the ROS domain (``~/set_parameters`
 the parameter file sets ``allow_runtime_weakening: true`` a change is accepted only when it
 makes the node stricter: each runtime-tunable setting has a direction in :data:`WEAKENS`
 (raising a maximum or lowering a minimum weakens the tests that decide whether a loop is true;
-``'any'`` marks a setting without such an order, which is locked). Tightening stays open.
+``'any'`` marks a setting without such an order, which is locked; ``'free'`` one whose change is
+harmless). Tightening stays open.
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEG
 # a count of chances, a tolerance), 'down' (lowering it: a minimum, an exclusion; 0 often
 # turns it off) or 'any' (no order: any change may). A tunable setting missing here counts as
 # 'any'. Keyframe gating decides no loop, but a remote change could starve the node of
-# keyframes: locked too.
+# keyframes: locked too. The back end's gates and the loops' covariance scale decide how hard
+# a loop pulls; its rates and sizes decide its load. 'free': any change is harmless.
 WEAKENS: dict[str, str] = {
     'distance_threshold': 'up', 'num_candidates': 'up', 'max_candidates': 'up',
     'exclude_recent_frames': 'down', 'exclude_recent_sec': 'down', 'min_margin': 'down',
@@ -66,6 +68,12 @@ WEAKENS: dict[str, str] = {
     'verify_single_object_overlap': 'down', 'verify_max_drift': 'up',
     'verify_max_drift_deg': 'up', 'odom_check_drift': 'up0', 'odom_check_slack_m': 'up',
     'odom_tolerance_sec': 'up', 'peer_timeout_sec': 'up',
+    'verify_covariance_scale': 'down', 'graph_candidates': 'up',
+    'graph_candidate_radius_m': 'up', 'graph_candidate_sigmas': 'up',
+    'graph_candidate_max_radius_m': 'up', 'graph_candidate_min_path_m': 'down',
+    'backend_loop_gate': 'up0', 'backend_loop_refuse': 'up0', 'backend_segment_jump_m': 'up',
+    'backend_extra_iterations': 'up', 'map_voxel_size': 'free', 'map_max_points': 'up',
+    'path_period_sec': 'down', 'map_period_sec': 'down',
 }
 
 
@@ -136,7 +144,7 @@ def weakening(name: str, old: Any, new: Any) -> bool:
         return bool(new > old)
     if way == 'down':
         return bool(new < old)
-    return True
+    return way != 'free'
 
 
 def changed(solid: SolidConfig, node_cfg: NodeConfig, new_solid: SolidConfig,

@@ -121,14 +121,15 @@ def test_save_services_write_their_files_and_replace_only_their_own(backend_node
                                                                      tmp_path: Path) -> None:
     h = backend_node
     drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
-    h.replay([m for k, i in enumerate(DRIVE[:3]) for m in (
+    # Stamps from 1 s: a cloud stamped 0 is one whose stamp cannot be trusted.
+    h.replay([m for k, i in enumerate(DRIVE[:3], start=1) for m in (
         ('odom', _odom(k * SEC, drive.odometry(i))),
         ('points', make_cloud(drive.scan(i).points, k * SEC)))])
     out = tmp_path / 'out'
     res = h.call('/solid_node/save_trajectory')
     assert res.success, res.message
     stamps, poses = read_tum_poses(out / 'trajectory.tum')
-    assert stamps.tolist() == [0, SEC, 2 * SEC]
+    assert stamps.tolist() == [SEC, 2 * SEC, 3 * SEC]
     assert len(read_kitti_poses(out / 'trajectory.kitti')) == 3
     np.testing.assert_allclose(poses[1][:3, 3], drive.odometry(40)[:3, 3], atol=1e-3)
     res = h.call('/solid_node/save_map')

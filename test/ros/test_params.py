@@ -177,4 +177,7 @@ def test_every_runtime_setting_has_a_direction_and_weakening_is_refused() -> Non
                                                                       0.05)
     assert weakening('heading_match', 'full', 'overlap') and weakening('min_margin', 0.1, 0.0)
     assert not weakening('exclude_recent_frames', 50, 60)
+    assert weakening('verify_covariance_scale', 1.0, 0.5) and weakening('backend_loop_refuse',
+                                                                        12.0, 0.0)
+    assert not weakening('map_voxel_size', 0.5, 0.1) and weakening('map_max_points', 10, 11)
     assert NodeConfig().allow_runtime_weakening is False
