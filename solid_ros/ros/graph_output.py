@@ -64,6 +64,13 @@ class GraphSnapshot:
     odom: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     loops: int = 0
 
+    def __post_init__(self) -> None:
+        # Shared with the executor's threads and the detector: nobody may write into it.
+        for array in (self.correction, self.covariance, self.indices, self.stamps_ns,
+                      self.poses, self.odom):
+            if array is not None:
+                array.flags.writeable = False
+
     def hint(self) -> GraphHint | None:
         """The detector's view of the graph (None before the first keyframe)."""
         if not len(self.indices):

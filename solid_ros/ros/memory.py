@@ -13,6 +13,10 @@ subscriber: +58 MB after three 60 MB clouds, given back only when the subscripti
 a subscription that received a message beyond the node's limits (a cloud over
 ``max_points_per_cloud``, an oversized peer message) is re-created once it is idle, at most
 every ``RENEW_GAP_SEC`` (:class:`Renewal`); a message in flight at that moment may be lost.
+Only under a single-threaded executor (``rclpy.spin``, as ``solid_node`` runs): under a
+multi-threaded one another thread may be adding the subscription's QoS event handler to its
+wait set while it is destroyed, and rclpy's executor then dies with ``InvalidHandle`` (seen in
+the tests), so there the reader keeps its buffer (``safe``).
 """
 
 from __future__ import annotations
@@ -96,11 +100,13 @@ class Renewal:
         create: makes the subscription (called now and at each renewal).
         destroy: destroys one.
         clock: monotonic seconds.
+        safe: whether destroying a subscription is safe now (else a request is dropped).
     """
 
     def __init__(self, create: Callable[[], Any], destroy: Callable[[Any], object],
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self._create, self._destroy, self._clock = create, destroy, clock
+                 clock: Callable[[], float] = time.monotonic,
+                 safe: Callable[[], bool] = lambda: True) -> None:
+        self._create, self._destroy, self._clock, self._safe = create, destroy, clock, safe
         self.current = create()
         self._due = False
         self._last = -float('inf')
@@ -116,6 +122,9 @@ class Renewal:
         subscription's own callback."""
         now = self._clock()
         if not self._due or not idle or now - self._last < RENEW_GAP_SEC:
+            return False
+        if not self._safe():
+            self._due = False
             return False
         self._due, self._last = False, now
         self._destroy(self.current)

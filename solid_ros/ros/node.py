@@ -76,7 +76,7 @@ from solid_ros.ros.memory import LARGE_BYTES, HeapTrim, Renewal
 from solid_ros.ros.odom_wait import OdometryWait
 from solid_ros.ros.params import apply_changes, changed, declare_all
 from solid_ros.ros.peer_guard import key_file_is_private, load_fleet_key
-from solid_ros.ros.peers import PeerLink
+from solid_ros.ros.peers import PeerLink, can_renew
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Stages, Verified
 from solid_ros.ros.stamp_guard import StampGuard
@@ -167,7 +167,7 @@ class SolidNode(Node):
         # Re-created after a cloud over max_points_per_cloud: frees what its reader keeps.
         self._points = Renewal(
             lambda: self.create_subscription(PointCloud2, 'points', self._on_points, qos),
-            self.destroy_subscription)
+            self.destroy_subscription, safe=lambda: can_renew(self))
         if self._odom is not None:
             # Deep enough that a burst of odometry is not dropped before pairing.
             odom_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,

@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt8MultiArray
@@ -70,7 +71,7 @@ from solid_ros.ros.memory import LARGE_BYTES, Renewal
 from solid_ros.ros.peer_fetch import CloudFetches, Pending
 from solid_ros.ros.peer_guard import PeerGuard, Refused, parse_allowlist
 
-__all__ = ['DESCRIPTOR_TOPIC', 'PeerLink', 'REPLY_TOPIC', 'REQUEST_TOPIC']
+__all__ = ['DESCRIPTOR_TOPIC', 'PeerLink', 'REPLY_TOPIC', 'REQUEST_TOPIC', 'can_renew']
 
 DESCRIPTOR_TOPIC = '/solid/descriptors'
 REQUEST_TOPIC = '/solid/cloud_requests'
@@ -83,6 +84,12 @@ _LISTED_ROBOTS = 16  # robots named on /diagnostics (the rest are counted)
 
 KeyframeRow = tuple[int, int, npt.NDArray[np.float64], npt.NDArray[np.float64],
                     npt.NDArray[np.float64] | None]
+
+
+def can_renew(node: Node) -> bool:
+    """Whether ``node``'s subscriptions can be re-created from its own callbacks: only under a
+    single-threaded executor (see :mod:`solid_ros.ros.memory`)."""
+    return isinstance(node.executor, SingleThreadedExecutor)
 
 
 class PeerLink:
@@ -140,7 +147,7 @@ class PeerLink:
         def subscription(topic: str, handle: Callable[[Any], None], depth: int) -> Renewal:
             return Renewal(lambda: node.create_subscription(UInt8MultiArray, topic, handle,
                                                             qos(depth)),
-                           node.destroy_subscription)
+                           node.destroy_subscription, safe=lambda: can_renew(node))
 
         # Each re-created after an oversized message (frees what its DDS reader keeps).
         self._subs = {DESCRIPTOR_TOPIC: subscription(DESCRIPTOR_TOPIC, self._on_descriptor, 1000),

@@ -51,3 +51,13 @@ def test_a_subscription_is_renewed_when_asked_and_idle_at_most_every_gap() -> No
     assert not renewal.maybe_renew()
     now[0] += 1
     assert renewal.maybe_renew() and renewal.renewals == 2 and gone == [0, 1]
+
+
+def test_a_renewal_that_is_not_safe_now_is_dropped() -> None:
+    """Under a multi-threaded executor a subscription is never destroyed from a callback."""
+    made: list[int] = []
+    renewal = Renewal(lambda: made.append(len(made)) or len(made) - 1, made.append,
+                      safe=lambda: False)
+    renewal.request()
+    assert not renewal.maybe_renew() and renewal.renewals == 0 and made == [0]
+    assert not renewal.maybe_renew()  # the request is gone, not retried each second

@@ -415,7 +415,7 @@ def test_malformed_clouds_leave_results_unchanged(harness: Callable[..., Harness
     h = harness()
     h.replay(hku1, bad=bad)
     got = [key(c) for c in h.candidates]
-    assert got == offline(hku1, SolidConfig.from_yaml(AVIA))
+    assert got == offline_closure(hku1, SolidConfig.from_yaml(AVIA))[0]
     assert h.node.stats.rejected == len(bad)
     assert h.node.stats.processed == len(clouds)
     assert h.node.stats.failed == 0
