@@ -32,6 +32,7 @@ from launch_files import (  # noqa: E402
     node_command,
     resolve_args,
 )
+from polling import wait_until  # noqa: E402
 from rcl_interfaces.srv import GetParameters  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
@@ -117,9 +118,8 @@ class _Probe:
         self.deadline = time.monotonic() + 60.0
 
     def spin_until(self, pred: Callable[[], bool], what: str) -> None:
-        while not pred():
-            assert time.monotonic() < self.deadline, f'timed out: {what}'
-            self.executor.spin_once(timeout_sec=0.1)
+        wait_until(pred, what, max(0.0, self.deadline - time.monotonic()),
+                   step=lambda: self.executor.spin_once(timeout_sec=0.1))
 
     def parameters(self, names: list[str]) -> list[Any]:
         """The node's values of ``names``, once its parameter service is up."""

@@ -282,13 +282,6 @@ class SolidNode(Node):
     def _on_points(self, msg: PointCloud2) -> None:
         self._health.cloud_received()
         self._trim.note(len(msg.data))
-        header = _header_ns(msg)
-        stamp, problem = self._stamps.take(
-            header, self._odom.newest if self._odom is not None else None)
-        if problem is not None:
-            line = self._health.untrusted_stamp(problem, header)
-            if line is not None:
-                self.get_logger().warning(line)
         try:
             points = cloud_to_xyz(msg)
             if points.shape[0] == 0:
@@ -296,6 +289,15 @@ class SolidNode(Node):
         except CloudError as err:
             self._stages.reject(str(err))
             return
+        # Only clouds that are used move the stamp guard: a malformed one with an old stamp
+        # must not make the next good cloud look as if the clock went back.
+        header = _header_ns(msg)
+        stamp, problem = self._stamps.take(
+            header, self._odom.newest if self._odom is not None else None)
+        if problem is not None:
+            line = self._health.untrusted_stamp(problem, header)
+            if line is not None:
+                self.get_logger().warning(line)
         cap = self._node_cfg.max_points_per_cloud
         if points.shape[0] > cap:
             points = self._thin(points, cap)

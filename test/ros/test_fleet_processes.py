@@ -25,6 +25,7 @@ import pytest
 rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from polling import wait_until  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
@@ -117,13 +118,11 @@ class Robots:
             self.executor.spin_once(timeout_sec=0.01)
 
     def wait_for(self, pred: Callable[[], bool], what: str, timeout: float = 240.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not pred():
-            for r, p in self.procs.items():
-                assert p.poll() is None, f'robot {r} died:\n{self.logs[r].read_text()[-3000:]}'
-            if time.monotonic() > deadline:
-                raise AssertionError(f'timed out waiting for {what}')
-            self.spin(0.05)
+        wait_until(pred, what, timeout, step=lambda: self.spin(0.05), check=self._alive)
+
+    def _alive(self) -> None:
+        for r, p in self.procs.items():
+            assert p.poll() is None, f'robot {r} died:\n{self.logs[r].read_text()[-3000:]}'
 
     def stats(self, robot: int) -> dict[str, str]:
         return self.diag.get(f'/r{robot}/solid_node', {})

@@ -22,6 +22,7 @@ import pytest
 pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
 
 from hku1_data import hku1_scans  # noqa: E402
+from polling import wait_until  # noqa: E402
 from project_paths import CONFIG_DIR  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
@@ -111,11 +112,7 @@ class Fleet:
         node.destroy_node()
 
     def wait_for(self, pred: Callable[[], bool], what: str, timeout: float = TIMEOUT) -> None:
-        deadline = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > deadline:
-                raise AssertionError(f'timed out waiting for {what}')
-            time.sleep(0.02)
+        wait_until(pred, what, timeout)
 
     def feed(self, robot: int, scans: list[int]) -> None:
         """Publish scans of the simulated drive to one robot and wait until it is through."""
