@@ -36,6 +36,7 @@ consumer of the whole flow (a pose graph) takes it there too.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -318,8 +319,17 @@ class SolidNode(Node):
 
     def _on_odom(self, msg: Odometry) -> None:
         assert self._odom is not None
+        covariance: Any = msg.pose.covariance
+        if not all(math.isfinite(v) for v in covariance):
+            # Refused alone: the pose is good, and the back end takes its noise model (a
+            # covariance it cannot use), so one bad field does not starve the node.
+            line = self._health.odom_rejected('odometry covariance is not finite (refused; '
+                                              "the pose is used with the back end's model)")
+            if line is not None:
+                self.get_logger().warning(line)
+            covariance = None
         try:
-            sample = self._odom.add(_header_ns(msg), odometry_to_pose(msg), msg.pose.covariance,
+            sample = self._odom.add(_header_ns(msg), odometry_to_pose(msg), covariance,
                                     msg.header.frame_id)
         except PoseError as err:
             line = self._health.odom_rejected(str(err))

@@ -56,6 +56,8 @@ def _latest_diag(h: Harness, key: str, want: str) -> dict[str, str]:
 
 def test_non_finite_odometry_is_refused_counted_and_never_paired(
         harness: Callable[..., Harness]) -> None:  # noqa: F811
+    """A NaN pose refuses the message; a NaN covariance only the covariance (the pose,
+    the same as the real one's here, pairs with the back end's noise model)."""
     h = harness(LOOP_EVERY_SCAN, params_file=None)
     scene = _scene(6)
     n = 6
@@ -75,6 +77,10 @@ def test_non_finite_odometry_is_refused_counted_and_never_paired(
     st = _latest_diag(h, 'odom_rejected', str(2 * n))
     assert 'odom_rejected' in _problems(h) and st['level'] == '1'
     assert 'odometry covariance is not finite' in st['message']
+    kept = list(h.node._odom._odom._samples)
+    assert sum(v.covariance is None for v in kept) == n  # the NaN covariances, dropped
+    assert all(v.covariance is None or all(map(math.isfinite, v.covariance.ravel()))
+               for v in kept)
 
 
 def test_zero_stamps_are_reported_and_processed_in_arrival_order(
