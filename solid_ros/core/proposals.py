@@ -24,6 +24,11 @@ after keyframe ``q - 1``):
   nothing the odometry does not).
 * Those within ``r`` of ``P_q`` (3-D distance of the sensor positions), nearest first, at
   most ``graph_candidates``; each with the graph's relative pose ``T_mq = P_j^-1 P_q``.
+* A loop the graph proposed must keep the graph's relative heading within
+  :func:`heading_tolerance_deg` (``graph_candidate_sigmas`` of the query's heading
+  uncertainty plus 2 degrees): in a symmetric room the registration can also fit the place
+  turned by 180 degrees (seen in the simulator), which only the descriptor's own evidence or
+  the graph tells apart, and a keyframe proposed by position has only the graph.
 
 Plain numpy: the node hands the hint over from an immutable snapshot; nothing here touches
 gtsam.
@@ -46,10 +51,13 @@ from solid_ros.core.graphnoise import model_covariance
 if TYPE_CHECKING:
     from solid_ros.core.graphtypes import Keyframe
 
-__all__ = ['GraphCandidate', 'GraphHint', 'near_keyframes', 'search_radius']
+__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'heading_tolerance_deg',
+           'near_keyframes', 'search_radius']
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
+# The match keyframe's own heading error in the graph, beyond the query's marginal.
+HEADING_FLOOR_DEG = 2.0
 
 
 def _frozen(a: npt.ArrayLike, dtype: type, shape: tuple[int, ...]) -> npt.NDArray[np.generic]:
@@ -161,6 +169,25 @@ def search_radius(covariance: npt.ArrayLike | None, config: SolidConfig,
                 + float(T[:3, 3] @ T[:3, 3]) * _largest(cov[3:, 3:]))
     sigma = math.sqrt(var)
     return min(cap, config.graph_candidate_radius_m + config.graph_candidate_sigmas * sigma)
+
+
+def heading_tolerance_deg(covariance: npt.ArrayLike | None, config: SolidConfig,
+                          step: npt.ArrayLike | None = None) -> float:
+    """How far a loop's heading may lie from the graph's relative heading of a keyframe it
+    proposed, degrees: ``graph_candidate_sigmas`` standard deviations of the query's heading
+    (the newest keyframe's marginal yaw variance plus the odometry model's over ``step``)
+    plus ``HEADING_FLOOR_DEG`` for the match's own uncertainty; 180 without a covariance."""
+    if covariance is None:
+        return 180.0
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape != (6, 6) or not bool(np.all(np.isfinite(cov))):
+        return 180.0
+    var = max(float(cov[5, 5]), 0.0)
+    if step is not None:
+        var += max(float(model_covariance(np.asarray(step, dtype=np.float64), config)[5, 5]),
+                   0.0)
+    return min(180.0, HEADING_FLOOR_DEG
+               + config.graph_candidate_sigmas * math.degrees(math.sqrt(var)))
 
 
 def _largest(block: FloatArray) -> float:

@@ -6,7 +6,9 @@ The node runs in its own process (``python -m solid_ros.ros.node``, HDL-64 prese
 that make every scan a query with one candidate (exclude_recent_frames 0, threshold 2.0), so
 each published cloud yields one candidate message. By default registration is off
 (``verify:=false``): the descriptor path alone; ``--verify`` measures the time to a verified
-loop (every scan is the same place turned, so every candidate is registered). The publisher
+loop (every scan is the same place turned, so every candidate is registered); ``--backend``
+publishes an Odometry before each cloud (the sensor turning in place) so that the preset's
+back end takes every keyframe and its loops after they are published. The publisher
 sends KITTI scan 313 (~121k points), rotated and jittered per message, at 10 Hz for
 ``--duration`` seconds and prints median / p95 / max latency and the skipped-cloud count
 from /diagnostics; then it steps the rate up (``--rates``) to find the highest rate
@@ -43,16 +45,19 @@ NS = 1_000_000_000
 _ECHO_TOPIC = '/solid_latency_echo'
 
 
-def _variants(points: np.ndarray, count: int, seed: int = 0) -> list[bytes]:
+def _variants(points: np.ndarray, count: int, seed: int = 0) -> tuple[list[bytes], list[float]]:
+    """The scan turned by random angles ``a`` (and jittered), and the angles: the sensor's
+    heading in the scan's frame is ``-a``."""
     rng = np.random.default_rng(seed)
-    out = []
+    out, angles = [], []
     for _ in range(count):
         a = rng.uniform(-np.pi, np.pi)
         rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0],
                         [0.0, 0.0, 1.0]])
         pts = points @ rot.T + rng.normal(scale=0.02, size=points.shape)
         out.append(np.ascontiguousarray(pts, dtype='<f4').tobytes())
-    return out
+        angles.append(float(a))
+    return out, angles
 
 
 def main() -> int:
@@ -65,6 +70,10 @@ def main() -> int:
     parser.add_argument('--verify', action='store_true',
                         help='keep registration on: latency to a verified loop (default: '
                              'verify:=false, the descriptor path alone)')
+    parser.add_argument('--backend', action='store_true',
+                        help="publish an Odometry with each cloud (the sensor's heading, in "
+                             "place), so the preset's back end runs: every keyframe goes "
+                             'into the pose graph after its loops are published')
     parser.add_argument('--no-floor', action='store_true',
                         help='skip the transport floor (echo process) run')
     parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
@@ -78,6 +87,7 @@ def main() -> int:
 
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -88,13 +98,14 @@ def main() -> int:
     from solid_ros.formats.pointfiles import read_pcd
 
     points = read_pcd(pcd).astype(np.float64)
-    variants = _variants(points, 16)
+    variants, angles = _variants(points, 16)
     domain = str(random.randint(1, 100))
     os.environ['ROS_DOMAIN_ID'] = domain
     node_cmd = [sys.executable, '-m', 'solid_ros.ros.node', '--ros-args', '--params-file',
                 str(ROOT / 'config' / 'hdl64.yaml'), '-p', 'exclude_recent_frames:=0',
                 '-p', 'distance_threshold:=2.0', '-p', 'qos_reliability:=reliable',
-                '-p', 'use_odom:=false', '-p', 'diagnostics_period_sec:=0.5',
+                '-p', f'use_odom:={"true" if args.backend else "false"}',
+                '-p', 'diagnostics_period_sec:=0.5',
                 '-p', f'verify:={"true" if args.verify else "false"}']
     proc: subprocess.Popen[str] | None = None
 
@@ -102,6 +113,10 @@ def main() -> int:
     node = Node('solid_latency_bench')
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     pub = node.create_publisher(PointCloud2, '/points', qos)
+    odom_pub = node.create_publisher(Odometry, '/odom', QoSProfile(
+        depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    odom = Odometry()
+    odom.header.frame_id, odom.child_frame_id = 'odom', 'velodyne'
     sent: dict[int, float] = {}
     latency: dict[int, float] = {}
     diag: dict[str, str] = {}
@@ -157,6 +172,12 @@ def main() -> int:
             stamp[0] += NS // int(rate)
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp[0], NS)
             msg.data = datas[i % len(datas)]
+            if args.backend:  # the odometry first, so that the node pairs it at once
+                odom.header.stamp = msg.header.stamp
+                half = -angles[i % len(angles)] / 2.0
+                odom.pose.pose.orientation.z, odom.pose.pose.orientation.w = (math.sin(half),
+                                                                              math.cos(half))
+                odom_pub.publish(odom)
             with lock:
                 sent[stamp[0]] = time.perf_counter()
             pub.publish(msg)
@@ -213,7 +234,8 @@ def main() -> int:
             if not ok:
                 break
             best = rate
-        print('diagnostics:', {k: v for k, v in diag.items() if k.startswith('clouds')})
+        print('diagnostics:', {k: v for k, v in diag.items()
+                               if k.startswith(('clouds', 'backend'))})
         print(f'highest sustained rate without skips: {best:.0f} Hz '
               f'(processing p50 {diag.get("processing_ms_p50")} ms in the node)')
     finally:

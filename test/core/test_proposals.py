@@ -10,7 +10,13 @@ import pytest
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.geometry import rot_z
-from solid_ros.core.proposals import GraphHint, near_keyframes, search_radius
+from solid_ros.core.proposals import (
+    HEADING_FLOOR_DEG,
+    GraphHint,
+    heading_tolerance_deg,
+    near_keyframes,
+    search_radius,
+)
 
 CFG = SolidConfig(graph_candidates=3, graph_candidate_radius_m=5.0, graph_candidate_sigmas=3.0,
                   graph_candidate_max_radius_m=15.0, graph_candidate_min_path_m=10.0,
@@ -143,3 +149,33 @@ def test_hint_is_read_only_and_finds_poses_by_index() -> None:
     np.testing.assert_allclose(hint.path_m, np.arange(10.0))
     assert near_keyframes(GraphHint.of([], [], np.zeros((0, 4, 4)), np.zeros((0, 4, 4)),
                                        np.eye(4)), 3, 0, np.eye(4), CFG) == []
+
+
+def test_heading_tolerance_follows_the_yaw_uncertainty() -> None:
+    cfg = SolidConfig(graph_candidate_sigmas=3.0)
+    assert heading_tolerance_deg(None, cfg) == 180.0
+    assert heading_tolerance_deg(np.full((6, 6), np.nan), cfg) == 180.0
+    cov = np.eye(6) * 1e-6
+    cov[5, 5] = math.radians(2.0) ** 2  # 2 deg of yaw
+    assert heading_tolerance_deg(cov, cfg) == pytest.approx(HEADING_FLOOR_DEG + 6.0)
+    turn = np.eye(4)
+    turn[:3, :3] = rot_z(math.pi / 2)  # turning adds the odometry model's yaw variance
+    assert heading_tolerance_deg(cov, cfg, turn) > heading_tolerance_deg(cov, cfg)
+
+
+def test_a_loop_the_graph_proposed_may_not_turn_from_its_guess() -> None:
+    """In a symmetric room the registration can fit the place turned by 180 degrees."""
+    from solid_ros.core.database import Match
+    from solid_ros.core.detector import _Hit, _turned_from_guess
+
+    guess = np.eye(4)
+    guess[:3, :3] = rot_z(math.radians(30.0))
+    hit = _Hit(Match(0, 0, 0, 0, 0.5), math.nan, np.zeros(60, np.float32), 'graph', guess,
+               True, 10.0)
+    near, flipped = guess.copy(), guess.copy()
+    near[:3, :3] = rot_z(math.radians(38.0))
+    flipped[:3, :3] = rot_z(math.radians(210.0))
+    assert not _turned_from_guess(hit, near) and _turned_from_guess(hit, flipped)
+    # The descriptor's candidates keep their own evidence: not checked against the guess.
+    from dataclasses import replace
+    assert not _turned_from_guess(replace(hit, source='descriptor'), flipped)
