@@ -92,3 +92,20 @@ def drift_percent(odometry: npt.ArrayLike, reference: npt.ArrayLike,
             err = np.linalg.solve(d_odo, d_ref)
             errors.append(float(np.linalg.norm(err[:3, 3])) / length)
     return 100.0 * float(np.mean(errors)) if errors else math.nan
+
+
+def square(n: int, side: int = 40) -> FloatArray:
+    """Reference poses driving ``n`` metres counter-clockwise around a square of ``side``
+    metres, one per metre (the back end's tests drive it and drift it)."""
+    out = []
+    pos, heading = np.zeros(2), 0.0
+    for k in range(n):
+        T = np.eye(4)
+        c, s = math.cos(heading), math.sin(heading)
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:2, 3] = pos
+        out.append(T)
+        pos = pos + np.array([c, s])
+        if (k + 1) % side == 0:
+            heading += math.pi / 2
+    return np.array(out)

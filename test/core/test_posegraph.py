@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from drifting_odometry import Drift, drifting_odometry
+from drifting_odometry import Drift, drifting_odometry, square
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import DescriptorDatabase
@@ -27,20 +27,6 @@ CFG = SolidConfig(backend=True)
 LOOP_COV = tuple(np.diag([1e-4] * 3 + [1e-6] * 3).ravel())
 SEC = 10**9
 
-
-def square(n: int, side: float = 40.0) -> np.ndarray:
-    """Poses driving n metres counter-clockwise around a square, one per metre."""
-    out = []
-    pos, heading = np.zeros(2), 0.0
-    for k in range(n):
-        T = np.eye(4)
-        T[:3, :3] = rot_z(heading)
-        T[:2, 3] = pos
-        out.append(T)
-        pos = pos + np.array([math.cos(heading), math.sin(heading)])
-        if (k + 1) % int(side) == 0:
-            heading += math.pi / 2
-    return np.array(out)
 
 
 def loop(ref: np.ndarray, q: int, m: int, session: int = 0, T: Any = None,

@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip('nav_msgs', reason='ROS 2 message packages are not installed')
 pytest.importorskip('gtsam', reason='gtsam is not installed')
 
-from drifting_odometry import Drift, drifting_odometry  # noqa: E402
+from drifting_odometry import Drift, drifting_odometry, square  # noqa: E402
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
 from solid_ros.core.detector import (  # noqa: E402
@@ -35,18 +35,6 @@ from solid_ros.ros.stages import Verified  # noqa: E402
 
 SEC = 10**9
 
-
-def square(n: int, side: int = 40) -> np.ndarray:
-    """Poses one metre apart counter-clockwise around a square."""
-    out, pos, heading = [], np.zeros(2), 0.0
-    for k in range(n):
-        T = np.eye(4)
-        T[:3, :3] = rot_z(heading)
-        T[:2, 3] = pos
-        out.append(T)
-        pos = pos + np.array([math.cos(heading), math.sin(heading)])
-        heading += math.pi / 2 if (k + 1) % side == 0 else 0.0
-    return np.array(out)
 
 
 def loop(ref: np.ndarray, q: int, m: int) -> LoopCandidate:
