@@ -29,6 +29,7 @@ import argparse
 import math
 import os
 import sys
+import tempfile
 import time
 from collections import Counter
 from pathlib import Path
@@ -55,6 +56,7 @@ from solid_ros.tools.replay import load_config, replay  # noqa: E402
 from solid_ros.tools.trajectory_metrics import ate_rmse  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data' / 'hku1'
+KITTI = ROOT.parent / 'shared' / 'data' / 'kitti' / 'pcd'
 PRESET = {'avia_like': 'avia.yaml', 'hdl64': 'hdl64.yaml'}
 
 
@@ -133,10 +135,50 @@ def main() -> int:
     p.add_argument('--scans', type=int, default=400, help='simulated scans per drive')
     p.add_argument('--repeat', type=int, default=1, help='off/on pairs per data set')
     p.add_argument('--hku1-odometry', choices=('kiss-icp', 'bag'), default='kiss-icp')
+    p.add_argument('--no-cpp', action='store_true',
+                   help="skip the authors' C++ reference (absolute times only)")
     args = p.parse_args()
     if hasattr(os, 'sched_setaffinity'):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     print(f'bench_graph_candidates: {load()}; pinned to one core', flush=True)
+    with tempfile.TemporaryDirectory(prefix='solid_bench_') as tmp:
+        exe = _cpp(Path(tmp), args.no_cpp)
+        ref = [] if exe is None else [_cpp_describe_ms(exe)]
+        added = _runs(args)
+        if exe is not None:
+            ref.append(_cpp_describe_ms(exe))
+    if ref:
+        c = float(np.median(ref))
+        print(f"the authors' C++ describe of KITTI 313 in this run: {c:.2f} ms CPU (before "
+              f'{ref[0]:.2f}, after {ref[-1]:.2f}); verification added per keyframe (median of '
+              'the per-keyframe difference) as a multiple of it (goal 10 ms):')
+        for name, ms in added.items():
+            print(f'  {name:10s} {ms / c:+5.2f}x ({ms:+.1f} ms)')
+    return 0
+
+
+def _cpp(tmp: Path, skip: bool) -> Path | None:
+    """The authors' C++ timing driver built into ``tmp`` (None: skipped or not buildable)."""
+    if skip or not (KITTI / '000313.pcd').is_file():
+        return None
+    from bench_core import _build_cpp
+
+    exe, reason = _build_cpp(tmp)
+    if exe is None:
+        print(f'C++ reference skipped: {reason}')
+    return exe
+
+
+def _cpp_describe_ms(exe: Path) -> float:
+    """The authors' C++ describe of KITTI 313 (gate + voxel grid + descriptor), CPU ms."""
+    from bench_core import _run_cpp
+
+    return float(_run_cpp(exe, KITTI / '000313.pcd', KITTI / '000314.pcd', 50)['cpu_total'])
+
+
+def _runs(args: argparse.Namespace) -> dict[str, float]:
+    """Each data set off / on; the median verification added per keyframe, by data set."""
+    added: dict[str, float] = {}
     for name in [s for s in args.sets.split(',') if s]:
         if name == 'hku1' and not (DATA / 'bag').is_dir():
             print(f'hku1 skipped: no data at {DATA}')
@@ -153,11 +195,14 @@ def main() -> int:
                       f'{load()})', flush=True)
                 if graph == 0:
                     base = out['verify']
+                elif base is not None and len(base) == len(out['verify']):
+                    d = np.asarray(out['verify']) - np.asarray(base)
+                    added[name] = added.get(name, 0.0) + float(np.nanmedian(d)) / args.repeat
                 p50[label] += float(np.nanmedian(out['verify'])) / args.repeat
         print(f'{name:10s} verify p50 over {args.repeat} pair(s): off {p50["off (0)"]:.1f} ms, '
               f'preset {p50["preset"]:.1f} ms (+{p50["preset"] - p50["off (0)"]:.1f} ms)',
               flush=True)
-    return 0
+    return added
 
 
 if __name__ == '__main__':
