@@ -719,19 +719,18 @@ class LoopDetector:
 
     def _unlevel(self, T: FloatArray) -> FloatArray:
         """A pose between levelled frames, expressed between the sensor frames."""
-        if not self._levelled:
-            return T
-        m = np.eye(4)
-        m[:3, :3] = self._mount
-        out: FloatArray = m.T @ T @ m
-        return out
+        return self._remount(T, inverse=True)
 
     def _level_pose(self, T: FloatArray) -> FloatArray:
         """A pose between the sensor frames, expressed between the levelled frames."""
+        return self._remount(T, inverse=False)
+
+    def _remount(self, T: FloatArray, inverse: bool) -> FloatArray:
+        """``M T M^-1`` with ``M`` the mount rotation (its inverse when ``inverse``)."""
         if not self._levelled:
             return T
         m = np.eye(4)
-        m[:3, :3] = self._mount
+        m[:3, :3] = self._mount.T if inverse else self._mount
         out: FloatArray = m @ T @ m.T
         return out
 
