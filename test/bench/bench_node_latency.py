@@ -80,11 +80,14 @@ def main() -> int:
                              'KISS-ICP (on its describe thread) and runs the back end on it')
     parser.add_argument('--no-floor', action='store_true',
                         help='skip the transport floor (echo process) run')
+    parser.add_argument('--scan', type=Path, default=DATA / 'kitti' / 'pcd' / '000313.pcd',
+                        help='the PCD published (default: KITTI scan 313 in the shared data '
+                             'beside the project; a git worktree elsewhere passes it)')
     parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.echo:
         return echo()
-    pcd = DATA / 'kitti' / 'pcd' / '000313.pcd'
+    pcd = args.scan
     if not pcd.is_file():
         print(f'KITTI scan not found at {pcd}; nothing to measure', file=sys.stderr)
         return 1
