@@ -9,9 +9,19 @@ each published cloud yields one candidate message. By default registration is of
 loop (every scan is the same place turned, so every candidate is registered); ``--backend``
 publishes an Odometry before each cloud (the sensor turning in place) so that the preset's
 back end takes every keyframe and its loops after they are published; ``--kiss`` lets the
-node register every cloud with KISS-ICP instead (``odometry_source: kiss_icp``). The publisher
-sends KITTI scan 313 (~121k points), rotated and jittered per message, at 10 Hz for
-``--duration`` seconds and prints median / p95 / max latency and the skipped-cloud count
+node register every cloud with KISS-ICP instead (``odometry_source: kiss_icp``).
+
+The Odometry comes from a process of its own, as from an odometry stack beside the LiDAR
+driver. Sent by the participant that sends the clouds, over Fast DDS's default transport
+(shared memory on one machine: the kernel counted only discovery's ~200 UDP datagrams, none
+dropped), a third of the odometry samples were lost (a best-effort reader got 130 of 200)
+and a reliable reader got them up to 2.8 s late: the writer repairs a loss on its next
+heartbeat (every 3 s), and later samples wait in order. Losses stop with the odometry in a
+participant of its own, or with the 32 MB segment of ``config/fastdds_shm.xml``: the 1.5 MB
+clouds overrun that participant's 512 KB segment.
+
+The publisher sends KITTI scan 313 (~121k points), rotated and jittered per message, at 10 Hz
+for ``--duration`` seconds and prints median / p95 / max latency and the skipped-cloud count
 from /diagnostics; then it steps the rate up (``--rates``) to find the highest rate
 sustained without skips. Timings are noisy on a shared machine; re-run on an idle one for
 published figures.
@@ -47,12 +57,15 @@ _ECHO_TOPIC = '/solid_latency_echo'
 
 
 def _variants(points: np.ndarray, count: int, seed: int = 0) -> tuple[list[bytes], list[float]]:
-    """The scan turned by random angles ``a`` (and jittered), and the angles: the sensor's
-    heading in the scan's frame is ``-a``."""
+    """The scan turned by angles ``a`` (and jittered), and the angles: the sensor's heading in
+    the scan's frame is ``-a``. Consecutive angles, and the last and the first, lie 7/16 of a
+    turn +- 6 deg apart, so that with odometry every cloud is a keyframe (the presets take one
+    every 10 deg): random ones left one in 18 within 10 deg of the one before, without a loop
+    to wait for."""
     rng = np.random.default_rng(seed)
     out, angles = [], []
-    for _ in range(count):
-        a = rng.uniform(-np.pi, np.pi)
+    for k in range(count):
+        a = (k * 7 / 16 * 2 * np.pi + rng.uniform(-0.05, 0.05)) % (2 * np.pi) - np.pi
         rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0],
                         [0.0, 0.0, 1.0]])
         pts = points @ rot.T + rng.normal(scale=0.02, size=points.shape)
@@ -80,18 +93,23 @@ def main() -> int:
                              'KISS-ICP (on its describe thread) and runs the back end on it')
     parser.add_argument('--no-floor', action='store_true',
                         help='skip the transport floor (echo process) run')
+    parser.add_argument('--scan', type=Path, default=DATA / 'kitti' / 'pcd' / '000313.pcd',
+                        help='the PCD published (default: KITTI scan 313 in the shared data '
+                             'beside the project; a git worktree elsewhere passes it)')
     parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--odometry', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.echo:
         return echo()
-    pcd = DATA / 'kitti' / 'pcd' / '000313.pcd'
+    if args.odometry:
+        return odometry()
+    pcd = args.scan
     if not pcd.is_file():
         print(f'KITTI scan not found at {pcd}; nothing to measure', file=sys.stderr)
         return 1
 
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
-    from nav_msgs.msg import Odometry
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -118,10 +136,7 @@ def main() -> int:
     node = Node('solid_latency_bench')
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     pub = node.create_publisher(PointCloud2, '/points', qos)
-    odom_pub = node.create_publisher(Odometry, '/odom', QoSProfile(
-        depth=100, reliability=ReliabilityPolicy.RELIABLE))
-    odom = Odometry()
-    odom.header.frame_id, odom.child_frame_id = 'odom', 'velodyne'
+    odom_proc: subprocess.Popen[str] | None = None
     sent: dict[int, float] = {}
     latency: dict[int, float] = {}
     diag: dict[str, str] = {}
@@ -177,12 +192,10 @@ def main() -> int:
             stamp[0] += NS // int(rate)
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp[0], NS)
             msg.data = datas[i % len(datas)]
-            if args.backend:  # the odometry first, so that the node pairs it at once
-                odom.header.stamp = msg.header.stamp
-                half = -angles[i % len(angles)] / 2.0
-                odom.pose.pose.orientation.z, odom.pose.pose.orientation.w = (math.sin(half),
-                                                                              math.cos(half))
-                odom_pub.publish(odom)
+            if odom_proc is not None:  # the odometry first, so that the node pairs it at once
+                assert odom_proc.stdin is not None
+                odom_proc.stdin.write(f'{stamp[0]} {-angles[i % len(angles)]!r}\n')
+                odom_proc.stdin.flush()
             with lock:
                 sent[stamp[0]] = time.perf_counter()
             pub.publish(msg)
@@ -214,6 +227,10 @@ def main() -> int:
         # (one per published loop) and then blocks the node.
         log = tempfile.TemporaryFile(mode='w+')
         proc = subprocess.Popen(node_cmd, env=dict(os.environ), stderr=log, text=True)
+        if args.backend:
+            odom_proc = subprocess.Popen([sys.executable, __file__, '--odometry'],
+                                         env=dict(os.environ), stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, text=True)
         deadline = time.monotonic() + 60
         while pub.get_subscription_count() == 0:
             if proc.poll() is not None or time.monotonic() > deadline:
@@ -221,6 +238,11 @@ def main() -> int:
                 print('solid_node did not start:', log.read(), file=sys.stderr)
                 return 1
             time.sleep(0.1)
+        if odom_proc is not None:
+            assert odom_proc.stdout is not None
+            if odom_proc.stdout.readline().strip() != 'ready':  # it gives up after 60 s
+                print('the odometry process found no subscriber', file=sys.stderr)
+                return 1
         run(10.0, 2.0)  # warm-up (imports, kd-tree, DDS discovery)
         lat, skipped, missing = run(10.0, args.duration)
         print(f'10 Hz, {len(points)} points/cloud, {args.duration:.0f} s: '
@@ -244,6 +266,8 @@ def main() -> int:
         print(f'highest sustained rate without skips: {best:.0f} Hz '
               f'(processing p50 {diag.get("processing_ms_p50")} ms in the node)')
     finally:
+        if odom_proc is not None:
+            stop_odometry(odom_proc)
         shutdown(proc, executor, spinner, node)
     return 0
 
@@ -287,6 +311,53 @@ def echo() -> int:
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def odometry() -> int:
+    """The odometry stack: one Odometry per line on stdin (stamp in ns, heading in rad; the
+    sensor turning in place), published at once; prints ``ready`` once the node subscribes."""
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    rclpy.init()
+    node = Node('solid_latency_odometry')
+    pub = node.create_publisher(Odometry, '/odom', QoSProfile(
+        depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    odom = Odometry()
+    odom.header.frame_id, odom.child_frame_id = 'odom', 'velodyne'
+    try:
+        deadline = time.monotonic() + 60
+        while pub.get_subscription_count() == 0:
+            if time.monotonic() > deadline:
+                return 1
+            time.sleep(0.05)
+        print('ready', flush=True)
+        for line in sys.stdin:
+            stamp_ns, heading = line.split()
+            odom.header.stamp.sec, odom.header.stamp.nanosec = divmod(int(stamp_ns), NS)
+            half = float(heading) / 2.0
+            odom.pose.pose.orientation.z, odom.pose.pose.orientation.w = (math.sin(half),
+                                                                          math.cos(half))
+            pub.publish(odom)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def stop_odometry(proc: subprocess.Popen[str]) -> None:
+    """End of input ends the odometry process (killed if it does not)."""
+    assert proc.stdin is not None
+    try:
+        proc.stdin.close()
+    except BrokenPipeError:
+        pass
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
 
 
 def shutdown(proc: subprocess.Popen[Any] | None, executor: Any, spinner: threading.Thread,
