@@ -1,0 +1,22 @@
+"""The bench scripts still run against the code they measure (a changed signature broke
+``bench_nees.py`` silently once): small slices, checked for their printed figures."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from project_paths import ROOT
+
+
+def _bench(*args: str) -> str:
+    done = subprocess.run([sys.executable, str(ROOT / 'test' / 'bench' / args[0]), *args[1:]],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout
+
+
+def test_bench_nees_scores_simulated_loops() -> None:
+    out = _bench('bench_nees.py', '--sets', 'indoor', '--scans', '60')
+    assert 'published loops' in out
+    assert 'vs reference' in out and 'NEES 6-DoF mean' in out
