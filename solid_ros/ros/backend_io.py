@@ -13,6 +13,10 @@ Outputs (with ``backend`` on and odometry to build the graph from):
   own at most every ``map_period_sec`` and only after a change: never on the cloud -> loop
   path.
 - ``lio_sam_loop_topic``: each loop as LIO-SAM's external loop message, when set.
+
+``~/map`` and ``~/path`` (megabytes, and growing) go out of a participant of their own
+(:mod:`solid_ros.ros.bulk_participant`): from the node's, they overran its shared-memory
+segment on Fast DDS's default transport and took ``/tf`` and ``~/odometry`` samples with them.
 - Services ``~/save_map`` (``map.pcd``) and ``~/save_trajectory`` (``trajectory.tum`` and
   ``trajectory.kitti``: the corrected pose of the odometry's child frame at each keyframe)
   write under ``output_directory``; no path comes from the caller, a file is written to a
@@ -49,6 +53,7 @@ from solid_ros.formats.poses import (
     write_kitti_poses,
     write_tum_poses,
 )
+from solid_ros.ros.bulk_participant import BulkParticipant
 from solid_ros.ros.graph_msgs import (
     cloud_msg,
     corrected_odometry,
@@ -90,8 +95,9 @@ class BackendIO:
         self._log = node.get_logger()
         self._tf_pub = self._tf_publisher()
         self._odom_pub = node.create_publisher(Odometry, '~/odometry', 10)
-        self._path_pub = node.create_publisher(PathMsg, '~/path', _LATCHED)
-        self._map_pub = (node.create_publisher(PointCloud2, '~/map', _LATCHED)
+        self._bulk = BulkParticipant(node)
+        self._path_pub = self._bulk.create_publisher(PathMsg, '~/path', _LATCHED)
+        self._map_pub = (self._bulk.create_publisher(PointCloud2, '~/map', _LATCHED)
                          if cfg.map_period_sec > 0.0 else None)
         self._lio_pub = (node.create_publisher(Float64MultiArray, cfg.lio_sam_loop_topic, 10)
                          if cfg.lio_sam_loop_topic else None)
@@ -238,9 +244,10 @@ class BackendIO:
         return self._output.map_poses()
 
     def stop(self, join_sec: float) -> None:
-        """End the map thread."""
+        """End the map thread, then the participant of the map and path."""
         self._map_worker.stop()
         self._map_worker.join(join_sec)
+        self._bulk.close()
 
 
 def _check_target(path: Path, read: Callable[[Path], Any]) -> None:

@@ -114,6 +114,13 @@ def test_a_revisit_corrects_the_pose_path_map_and_tf(backend_node: Harness,
     assert out.pose.covariance[0] > 0.0
     h.wait_for(lambda: bool(maps) and maps[-1].width > 1000, 'the map')
     assert maps[-1].header.frame_id == 'map' and np.isfinite(cloud_to_xyz(maps[-1])).all()
+    # The map and path leave by a participant of their own: megabytes from the node's own
+    # overran its shared-memory segment and took /tf and odometry samples with them.
+    for topic, node_name in [('/solid_node/map', 'solid_node_bulk'),
+                             ('/solid_node/path', 'solid_node_bulk'),
+                             ('/tf', 'solid_node'), ('/solid_node/odometry', 'solid_node')]:
+        assert {i.node_name for i in h.client.get_publishers_info_by_topic(topic)} == {
+            node_name}, topic
     h.wait_for(lambda: h.status().get('backend_loops') == '1', 'the loop on /diagnostics')
 
 
