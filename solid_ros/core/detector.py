@@ -25,9 +25,12 @@ Candidates by position (:mod:`solid_ros.core.proposals`): given the pose graph's
 (a :class:`~solid_ros.core.proposals.GraphHint`, from :class:`~solid_ros.core.closure.LoopClosure`
 or the node's graph snapshot) with ``verify`` and ``graph_candidates`` on, :meth:`verify` adds
 the earlier keyframes of this session near the query in the corrected estimate (source
-``'graph'``), and every candidate the graph knows is registered from the graph's relative pose
-first. Those near keyframes (the graph's, and the descriptor's among them) are verified first;
-the descriptor's other candidates only when they leave fewer than ``max_candidates`` places
+``'graph'``), and, when none of those saw the query's place, the keyframes whose view centre
+(their cloud's centroid) lies near the query's: a narrow field of view sees the place ahead,
+so a street driven the other way is seen from keyframes tens of metres off. Every candidate
+the graph knows is registered from the graph's relative pose first. Those near keyframes (the
+graph's, and the descriptor's among them) are verified first, then those by view; the
+descriptor's other candidates only when they leave fewer than ``max_candidates`` places
 verified. Without a hint nothing changes.
 
 Acceptance with ``verify`` (see :mod:`solid_ros.core.verification`): every candidate goes
@@ -520,10 +523,11 @@ class LoopDetector:
 
         With a ``hint`` (the pose graph after the previous keyframe), ``graph_candidates`` on,
         verification on and an odometry pose for the keyframe, the keyframes near it in the
-        graph's estimate join the descriptor's candidates (:mod:`solid_ros.core.proposals`;
-        appended to ``proposal.hits``, source ``'graph'``), and every candidate the graph
-        places within ``graph_candidate_max_radius_m`` is registered from the graph's
-        relative pose first. They pass the same tests.
+        graph's estimate, or that saw its place, join the descriptor's candidates
+        (:mod:`solid_ros.core.proposals`; appended to ``proposal.hits``, source ``'graph'``),
+        and every candidate the graph places within ``graph_candidate_max_radius_m`` or
+        proposes by view is registered from the graph's relative pose first. They pass the
+        same tests.
         """
         t0 = time.perf_counter()
         cfg = self._config
