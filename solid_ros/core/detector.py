@@ -568,9 +568,12 @@ class LoopDetector:
         odom = vector_to_matrix(proposal.pose)
         near = near_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, cfg)
         close = {c.index for c in near}
-        seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom,
-                              self._view_centre(proposal.cloud_points), self._views, cfg,
-                              sorted(close)) if len(proposal.cloud_points) else []
+        seen = []
+        if len(proposal.cloud_points):
+            centre = self._view_centre(proposal.cloud_points)
+            seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, centre,
+                                  self._views, cfg, sorted(close),
+                                  _extent(proposal.cloud_points))
         viewed = {c.index for c in seen}
         tol = heading_tolerance_deg(hint.covariance, cfg, np.linalg.solve(hint.odom[-1], odom))
         predicted = hint.predict(odom)
@@ -874,6 +877,12 @@ def _turned_from_guess(hit: _Hit, T_mq: FloatArray) -> bool:
         return False
     turn = math.degrees(abs(yaw_of(np.linalg.solve(hit.guess, T_mq)[:3, :3])))
     return turn > hit.heading_tol_deg
+
+
+def _extent(cloud: FloatArray) -> float:
+    """RMS horizontal distance of a cloud's points from their centroid, metres."""
+    xy = np.asarray(cloud, dtype=np.float64)[:, :2]
+    return math.sqrt(float(np.mean(np.sum((xy - xy.mean(axis=0)) ** 2, axis=1))))
 
 
 def _same_place(a: Match, b: Match, hood: int) -> bool:

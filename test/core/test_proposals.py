@@ -242,3 +242,21 @@ def test_the_view_radius_grows_with_the_heading_uncertainty_at_the_view_centre()
         5.0 + 3.0 * math.sqrt(odo + (10.0 * math.radians(1.0)) ** 2))
     assert search_radius(cov, CFG, _pose(10.0), [20.0, 0.0, 0.0]) > search_radius(
         cov, CFG, _pose(10.0))
+
+
+def test_a_wide_view_reaches_as_far_as_its_extent() -> None:
+    street, views = _street_hint()
+    # Keyframes 0-10 only (x = 0-20 m, their views centred at x = 20-40 m). Driving back west
+    # at x = 72 the sensor sees around x = 52: 12 m beyond keyframe 10's view, 14 m beyond 9's.
+    hint = GraphHint.of(street.indices[:11], street.stamps_ns[:11], street.poses[:11],
+                        street.odom[:11], np.eye(4), _cov(0.0))
+    q = _pose(72.0, 0.0, math.pi)
+    # Beyond the 5 m floor ...
+    assert view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], views, CFG) == []
+    # ... but within a view 14.5 m across (RMS): it saw much of the same stretch.
+    seen = view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], views, CFG,
+                          extent=14.5)
+    assert [c.index for c in seen] == [10, 9]
+    assert search_radius(_cov(0.0), CFG, floor=14.0) == pytest.approx(14.0)
+    assert search_radius(_cov(1.0), CFG, floor=14.0) == pytest.approx(15.0)  # the cap
+    assert search_radius(_cov(0.0), CFG, floor=2.0) == pytest.approx(5.0)  # the usual floor
