@@ -25,9 +25,10 @@ Candidates by position (:mod:`solid_ros.core.proposals`): given the pose graph's
 (a :class:`~solid_ros.core.proposals.GraphHint`, from :class:`~solid_ros.core.closure.LoopClosure`
 or the node's graph snapshot) with ``verify`` and ``graph_candidates`` on, :meth:`verify` adds
 the earlier keyframes of this session near the query in the corrected estimate (source
-``'graph'``), and, when none of those saw the query's place, the keyframes whose view centre
-(their cloud's centroid) lies near the query's: a narrow field of view sees the place ahead,
-so a street driven the other way is seen from keyframes tens of metres off. Every candidate
+``'graph'``), and, when none of those saw the query's place and the query's view is
+one-sided, the keyframes whose view centre (their cloud's centroid) lies near the query's: a
+narrow field of view sees the place ahead, so a street driven the other way is seen from
+keyframes tens of metres off. Every candidate
 the graph knows is registered from the graph's relative pose first. Those near keyframes (the
 graph's, and the descriptor's among them) are verified first, then those by view; the
 descriptor's other candidates only when they leave fewer than ``max_candidates`` places
@@ -572,8 +573,8 @@ class LoopDetector:
         if len(proposal.cloud_points):
             centre = self._view_centre(proposal.cloud_points)
             seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, centre,
-                                  self._views, cfg, sorted(close),
-                                  _extent(proposal.cloud_points))
+                                  _extent(proposal.cloud_points), self._views, cfg,
+                                  sorted(close))
         viewed = {c.index for c in seen}
         tol = heading_tolerance_deg(hint.covariance, cfg, np.linalg.solve(hint.odom[-1], odom))
         predicted = hint.predict(odom)

@@ -30,15 +30,17 @@ after keyframe ``q - 1``):
   keyframe's view centre ``c`` is the centroid of its keyframe cloud (sensor frame); keyframes
   whose view centre ``P_j c_j`` lies within ``r_v`` of the query's ``P_q c_q`` are proposed
   too, nearest first, at most ``graph_candidates``, unless a keyframe proposed by position
-  already saw it (its view centre lies within ``r_v`` too: nothing new to try).
+  already saw it (its view centre lies within ``r_v`` too: nothing new to try). Only for a
+  one-sided view: the query's view centre lies farther from its sensor than its view extent
+  ``e`` (below). A spinning sensor's view centre lies within a tenth to a third of its extent
+  from the sensor (simulated drives), where the position rule already stands for the view; a
+  70-90 degree view's lies 1.2-2.3 extents ahead (streets, the room).
   ``r_v`` is ``r`` with the view centre as the lever of the heading uncertainty (its offset
   from the newest keyframe, where the sensor position is used for ``r``) and the query's view
   extent ``e`` (RMS horizontal distance of its cloud's points from their centroid) as the
   floor when larger than ``graph_candidate_radius_m``: two views share most of what they
   saw while their centres lie within one extent (about 14 m for the simulated Avia on
-  streets, 2-3 m in a room, 30 m for a spinning sensor, all then capped at
-  ``graph_candidate_max_radius_m``). For a spinning sensor the view centre lies near the
-  sensor and the keyframes by position mostly saw the place already.
+  streets, 2-3 m in a room), capped at ``graph_candidate_max_radius_m``.
 * A loop the graph proposed must keep the graph's relative heading within
   :func:`heading_tolerance_deg` (``graph_candidate_sigmas`` of the query's heading
   uncertainty plus 2 degrees): in a symmetric room the registration can also fit the place
@@ -258,10 +260,11 @@ def near_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
 
 
 def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: npt.ArrayLike,
-                   view: npt.ArrayLike, views: Mapping[int, FloatArray], config: SolidConfig,
-                   near: Sequence[int] = (), extent: float = 0.0) -> list[GraphCandidate]:
+                   view: npt.ArrayLike, extent: float, views: Mapping[int, FloatArray],
+                   config: SolidConfig, near: Sequence[int] = ()) -> list[GraphCandidate]:
     """The eligible keyframes whose view centre lies near the query's, nearest first
-    (``distance_m``: between the view centres); none when one of ``near`` is among them.
+    (``distance_m``: between the view centres); none when one of ``near`` is among them or
+    the query's view is not one-sided (see the module docstring).
 
     Args:
         hint: the graph's estimate.
@@ -269,17 +272,18 @@ def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
         stamp_ns: its stamp.
         odom_pose: its 4x4 odometry pose.
         view: its view centre (sensor frame, 3-vector).
+        extent: its view extent, metres (see the module docstring).
         views: view centres of earlier keyframes by index (a keyframe without one is not
             proposed).
         config: ``graph_candidate*`` and the exclusion window.
         near: the keyframes already proposed by position.
-        extent: the query's view extent, metres (see the module docstring).
     """
-    if config.graph_candidates <= 0 or len(hint.indices) == 0:
+    c_q = np.asarray(view, dtype=np.float64).reshape(3)
+    if (config.graph_candidates <= 0 or len(hint.indices) == 0
+            or not float(np.linalg.norm(c_q)) > extent):
         return []
     odom = np.asarray(odom_pose, dtype=np.float64)
     predicted = hint.predict(odom)
-    c_q = np.asarray(view, dtype=np.float64).reshape(3)
     centres = np.full((len(hint.indices), 3), np.nan)
     for k, j in enumerate(hint.indices.tolist()):
         c = views.get(j)

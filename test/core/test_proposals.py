@@ -197,17 +197,21 @@ def test_a_keyframe_that_saw_the_place_from_afar_is_proposed() -> None:
     q = _pose(60.0, 1.0, math.pi)
     near = near_keyframes(hint, 100, 100 * 10**9, q, CFG)
     assert [c.index for c in near] == [30, 29, 31]  # the position rule: beside the query
-    seen = view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], views, CFG)
+    seen = view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views, CFG)
     assert [c.index for c in seen] == [10, 9, 11]
     np.testing.assert_allclose([c.distance_m for c in seen], [1.0, math.hypot(2.0, 1.0),
                                                               math.hypot(2.0, 1.0)])
     # The graph's relative pose: 40 m along keyframe 10's x, turned round.
     np.testing.assert_allclose(seen[0].T_mq[:3, 3], [40.0, 1.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(seen[0].T_mq[:3, :3], rot_z(math.pi), atol=1e-12)
+    # A view all round (its centre within its extent of the sensor, as a spinning sensor's):
+    # the position rule stands for it, nothing by view.
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 25.0, views, CFG) == []
     # A keyframe without a view centre is not proposed; nor anything when none is wanted.
     assert 10 not in {c.index for c in view_keyframes(
-        hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], {**views, 10: np.full(3, np.nan)}, CFG)}
-    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], views,
+        hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, {**views, 10: np.full(3, np.nan)},
+        CFG)}
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views,
                           CFG.replace(graph_candidates=0)) == []
 
 
@@ -217,11 +221,11 @@ def test_no_view_candidates_when_a_keyframe_by_position_saw_the_place() -> None:
     q = _pose(20.5, 1.0)
     near = [c.index for c in near_keyframes(hint, 100, 100 * 10**9, q, CFG)]
     assert near[0] == 10
-    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], views, CFG,
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views, CFG,
                           near) == []
     # Without them the same keyframes come back by their view.
     assert [c.index for c in view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0],
-                                            views, CFG)] == near
+                                            10.0, views, CFG)] == near
 
 
 def test_the_view_radius_grows_with_the_heading_uncertainty_at_the_view_centre() -> None:
@@ -252,10 +256,9 @@ def test_a_wide_view_reaches_as_far_as_its_extent() -> None:
                         street.odom[:11], np.eye(4), _cov(0.0))
     q = _pose(72.0, 0.0, math.pi)
     # Beyond the 5 m floor ...
-    assert view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], views, CFG) == []
+    assert view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], 4.0, views, CFG) == []
     # ... but within a view 14.5 m across (RMS): it saw much of the same stretch.
-    seen = view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], views, CFG,
-                          extent=14.5)
+    seen = view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], 14.5, views, CFG)
     assert [c.index for c in seen] == [10, 9]
     assert search_radius(_cov(0.0), CFG, floor=14.0) == pytest.approx(14.0)
     assert search_radius(_cov(1.0), CFG, floor=14.0) == pytest.approx(15.0)  # the cap
