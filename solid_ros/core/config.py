@@ -305,8 +305,10 @@ class SolidConfig(_Schema):
                                    'loops)', low=0.0, high=1e6)
     graph_candidates: int = _p(3, 'Besides the descriptor candidates, verify up to this many '
                                'earlier keyframes of this session lying near the query in the '
-                               "back end's corrected estimate, nearest first (needs verify and "
-                               'the back end with odometry; 0 = off)', low=0, high=100)
+                               "back end's corrected estimate, nearest first, and when none of "
+                               "them saw the query's place as many whose view centre lies near "
+                               "the query's (needs verify and the back end with odometry; "
+                               '0 = off)', low=0, high=100)
     graph_candidate_radius_m: float = _p(5.0, 'Graph candidates: search radius around the '
                                          "query's predicted pose when the back end is certain "
                                          'of it (the floor), metres', low=0.0, high=1000.0)

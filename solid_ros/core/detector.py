@@ -25,9 +25,13 @@ Candidates by position (:mod:`solid_ros.core.proposals`): given the pose graph's
 (a :class:`~solid_ros.core.proposals.GraphHint`, from :class:`~solid_ros.core.closure.LoopClosure`
 or the node's graph snapshot) with ``verify`` and ``graph_candidates`` on, :meth:`verify` adds
 the earlier keyframes of this session near the query in the corrected estimate (source
-``'graph'``), and every candidate the graph knows is registered from the graph's relative pose
-first. Those near keyframes (the graph's, and the descriptor's among them) are verified first;
-the descriptor's other candidates only when they leave fewer than ``max_candidates`` places
+``'graph'``), and, when none of those saw the query's place and the query's view is
+one-sided, the keyframes whose view centre (their cloud's centroid) lies near the query's: a
+narrow field of view sees the place ahead, so a street driven the other way is seen from
+keyframes tens of metres off. Every candidate
+the graph knows is registered from the graph's relative pose first. Those near keyframes (the
+graph's, and the descriptor's among them) are verified first, then those by view; the
+descriptor's other candidates only when they leave fewer than ``max_candidates`` places
 verified. Without a hint nothing changes.
 
 Acceptance with ``verify`` (see :mod:`solid_ros.core.verification`): every candidate goes
@@ -79,7 +83,12 @@ from solid_ros.core.geometry import (
 from solid_ros.core.keyframes import CloudStore, KeyframeCloud
 from solid_ros.core.matching import cosine_distance, estimate_yaw, heading_hypotheses
 from solid_ros.core.odometry import OdometryPath, disagreement
-from solid_ros.core.proposals import GraphHint, heading_tolerance_deg, near_keyframes
+from solid_ros.core.proposals import (
+    GraphHint,
+    heading_tolerance_deg,
+    near_keyframes,
+    view_keyframes,
+)
 from solid_ros.core.reasons import Reason
 from solid_ros.core.registration import Query
 from solid_ros.core.stamps import check_stamp
@@ -172,7 +181,8 @@ class _Hit:
     """A candidate to verify: the descriptor's (from :meth:`LoopDetector.propose`) or the
     pose graph's (added by ``verify``); ``guess`` is the graph's ``T_mq`` in the levelled
     frames, the first start of the coarse registration (None: the graph has none); ``near``:
-    among the keyframes near the query in the graph's estimate (verified first);
+    among the keyframes near the query in the graph's estimate (verified first); ``view``:
+    among those whose view centre lies near the query's (verified next);
     ``heading_tol_deg``: how far a loop the graph proposed may turn from the guess."""
 
     match: Match
@@ -182,6 +192,7 @@ class _Hit:
     guess: FloatArray | None = None
     near: bool = False
     heading_tol_deg: float = 180.0
+    view: bool = False
 
 
 @dataclass(frozen=True)
@@ -290,6 +301,9 @@ class LoopDetector:
         # Database sequence number of each own keyframe, by index: written by propose, read
         # by verify (on another thread in the node, where the database's own map may move).
         self._own_seqs: dict[int, int] = {}
+        # View centre (keyframe cloud centroid, sensor frame) of each own keyframe, by index,
+        # for candidates by what they saw (solid_ros.core.proposals); written and read alike.
+        self._views: dict[int, FloatArray] = {}
         # Where clouds of other robots' keyframes come from (the node asks the owner); it
         # returns the cloud or the reason there is none. None: such candidates stay unverified.
         self.fetch_cloud: CloudFetcher | None = None
@@ -493,6 +507,10 @@ class LoopDetector:
         self._own_seqs[q_index] = seq
         while len(self._own_seqs) > cfg.capacity:
             del self._own_seqs[next(iter(self._own_seqs))]
+        if cloud is not None and len(cloud):
+            self._views[q_index] = self._view_centre(cloud)
+            while len(self._views) > cfg.capacity:
+                del self._views[next(iter(self._views))]
         self._path.add(q_index, vec)
         self._kf_stamp, self._kf_pose = stamp, vec
         return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
@@ -506,10 +524,11 @@ class LoopDetector:
 
         With a ``hint`` (the pose graph after the previous keyframe), ``graph_candidates`` on,
         verification on and an odometry pose for the keyframe, the keyframes near it in the
-        graph's estimate join the descriptor's candidates (:mod:`solid_ros.core.proposals`;
-        appended to ``proposal.hits``, source ``'graph'``), and every candidate the graph
-        places within ``graph_candidate_max_radius_m`` is registered from the graph's
-        relative pose first. They pass the same tests.
+        graph's estimate, or that saw its place, join the descriptor's candidates
+        (:mod:`solid_ros.core.proposals`; appended to ``proposal.hits``, source ``'graph'``),
+        and every candidate the graph places within ``graph_candidate_max_radius_m`` or
+        proposes by view is registered from the graph's relative pose first. They pass the
+        same tests.
         """
         t0 = time.perf_counter()
         cfg = self._config
@@ -550,6 +569,13 @@ class LoopDetector:
         odom = vector_to_matrix(proposal.pose)
         near = near_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, cfg)
         close = {c.index for c in near}
+        seen = []
+        if len(proposal.cloud_points):
+            centre = self._view_centre(proposal.cloud_points)
+            seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, centre,
+                                  _extent(proposal.cloud_points), self._views, cfg,
+                                  sorted(close))
+        viewed = {c.index for c in seen}
         tol = heading_tolerance_deg(hint.covariance, cfg, np.linalg.solve(hint.odom[-1], odom))
         predicted = hint.predict(odom)
         hits = []
@@ -557,11 +583,13 @@ class LoopDetector:
             pose_m = hint.pose_of(h.match.index) if h.match.session == cfg.session_id else None
             if pose_m is not None:
                 T = np.asarray(np.linalg.solve(pose_m, predicted), dtype=np.float64)
-                if np.linalg.norm(T[:3, 3]) <= cfg.graph_candidate_max_radius_m:
-                    h = replace(h, guess=self._level_pose(T), near=h.match.index in close)
+                if (np.linalg.norm(T[:3, 3]) <= cfg.graph_candidate_max_radius_m
+                        or h.match.index in viewed):
+                    h = replace(h, guess=self._level_pose(T), near=h.match.index in close,
+                                view=h.match.index in viewed)
             hits.append(h)
         own = {h.match.index for h in hits if h.match.session == cfg.session_id}
-        for c in near:
+        for c, is_near in [(c, True) for c in near] + [(c, False) for c in seen]:
             seq = self._own_seqs.get(c.index)
             if c.index in own or seq is None or not db.is_stored(seq):
                 continue
@@ -569,8 +597,14 @@ class LoopDetector:
                 proposal.r_solid, db.r_solid(seq))
             match = Match(seq, c.index, cfg.session_id, c.stamp_ns, distance)
             hits.append(_Hit(match, math.nan, db.heading(seq).copy(), 'graph',
-                             self._level_pose(c.T_mq), True, tol))
+                             self._level_pose(c.T_mq), is_near, tol, not is_near))
         return hits
+
+    def _view_centre(self, cloud: FloatArray) -> FloatArray:
+        """Centroid of a keyframe cloud (levelled frame) in the sensor frame."""
+        centre = np.asarray(cloud, dtype=np.float64)[:, :3].mean(axis=0)
+        out: FloatArray = self._mount.T @ centre if self._levelled else centre
+        return out
 
     def _candidate(self, proposal: Proposal, hit: _Hit, yaw: float,
                    result: Verification | None) -> LoopCandidate:
@@ -631,10 +665,12 @@ class LoopDetector:
         yaws: dict[int, float] = {}
         verified: list[Match] = []
         # The graph's near keyframes first: registered from its pose they mostly verify at
-        # once, and the rest are then not needed (max_candidates).
+        # once, and the rest are then not needed (max_candidates); then those that saw the
+        # query's place from elsewhere, then the descriptor's others.
         hits = proposal.hits
         for group in ([i for i, h in enumerate(hits) if h.near],
-                      [i for i, h in enumerate(hits) if not h.near]):
+                      [i for i, h in enumerate(hits) if h.view and not h.near],
+                      [i for i, h in enumerate(hits) if not (h.near or h.view)]):
             if gap_blocked or len(verified) >= self._config.max_candidates:
                 break
             self._register(proposal, query, group, clouds, results, yaws, verified)
@@ -798,6 +834,7 @@ class LoopDetector:
         self._last_loop_query = None
         self._path.clear()
         self._own_seqs.clear()
+        self._views.clear()
 
     def save(self, path: str | Path,
              map_poses: Mapping[tuple[int, int], Any] | None = None) -> Path:
@@ -841,6 +878,12 @@ def _turned_from_guess(hit: _Hit, T_mq: FloatArray) -> bool:
         return False
     turn = math.degrees(abs(yaw_of(np.linalg.solve(hit.guess, T_mq)[:3, :3])))
     return turn > hit.heading_tol_deg
+
+
+def _extent(cloud: FloatArray) -> float:
+    """RMS horizontal distance of a cloud's points from their centroid, metres."""
+    xy = np.asarray(cloud, dtype=np.float64)[:, :2]
+    return math.sqrt(float(np.mean(np.sum((xy - xy.mean(axis=0)) ** 2, axis=1))))
 
 
 def _same_place(a: Match, b: Match, hood: int) -> bool:

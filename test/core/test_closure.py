@@ -127,3 +127,26 @@ def test_without_the_back_end_or_graph_candidates_nothing_changes() -> None:
     assert closure.hint is None
     assert [a for a in no_odom] == [a for a in _attempts(
         LoopClosure(LoopDetector(CFG.replace(backend=False))), drive)]
+
+
+def test_a_narrow_view_closes_a_loop_with_a_keyframe_that_saw_the_place_from_afar() -> None:
+    # The Avia-like sensor (70 deg) drives a street one way (scans 91-93), later the other way
+    # (scan 219): its sensor is 30 m from theirs (beyond graph_candidate_max_radius_m), but it
+    # sees the stretch they saw. The descriptor proposes nothing; the graph's view does.
+    from solid_ros.sim import DEMO_DEFAULTS
+
+    drive = Drive(DriveConfig(seed=0, sensor='avia_like', block=DEMO_DEFAULTS['block'],
+                              spacing=DEMO_DEFAULTS['spacing']))
+    scans = [91, 92, 93, 130, 160, 190, 219]
+    cfg = SolidConfig.from_yaml(Path(__file__).parents[2] / 'config' / 'avia.yaml').replace(
+        backend=True, exclude_recent_frames=2, distance_threshold=0.0,
+        backend_segment_jump_m=1000.0)
+    closure = LoopClosure(LoopDetector(cfg))
+    for k, i in enumerate(scans):
+        step = closure.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC,
+                                                                         drive.odometry(i)))
+    (loop,) = step.scan.loops
+    assert loop.source == 'graph' and loop.verified and loop.match_index in (0, 1, 2)
+    ref = np.linalg.solve(drive.pose(scans[loop.match_index]), drive.pose(219))
+    assert np.linalg.norm(ref[:3, 3]) > cfg.graph_candidate_max_radius_m
+    assert np.linalg.norm(loop.matrix()[:3, 3] - ref[:3, 3]) < 0.3

@@ -16,6 +16,7 @@ from solid_ros.core.proposals import (
     heading_tolerance_deg,
     near_keyframes,
     search_radius,
+    view_keyframes,
 )
 
 CFG = SolidConfig(graph_candidates=3, graph_candidate_radius_m=5.0, graph_candidate_sigmas=3.0,
@@ -179,3 +180,86 @@ def test_a_loop_the_graph_proposed_may_not_turn_from_its_guess() -> None:
     # The descriptor's candidates keep their own evidence: not checked against the guess.
     from dataclasses import replace
     assert not _turned_from_guess(replace(hit, source='descriptor'), flipped)
+
+
+def _street_hint() -> tuple[GraphHint, dict[int, npt.NDArray[np.float64]]]:
+    """A street driven east, 40 keyframes 2 m apart, by a sensor that sees 20 m ahead."""
+    poses = np.array([_pose(2.0 * i) for i in range(40)])
+    views = {i: np.array([20.0, 0.0, 0.0]) for i in range(40)}
+    return GraphHint.of(np.arange(40), np.arange(40) * 10**9, poses, poses, np.eye(4),
+                        _cov(0.0)), views
+
+
+def test_a_keyframe_that_saw_the_place_from_afar_is_proposed() -> None:
+    hint, views = _street_hint()
+    # Driving back west at x = 60: the sensor sees x = 40, which keyframe 10 (x = 20) saw;
+    # the keyframes beside the query (28-32) looked the other way.
+    q = _pose(60.0, 1.0, math.pi)
+    near = near_keyframes(hint, 100, 100 * 10**9, q, CFG)
+    assert [c.index for c in near] == [30, 29, 31]  # the position rule: beside the query
+    seen = view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views, CFG)
+    assert [c.index for c in seen] == [10, 9, 11]
+    np.testing.assert_allclose([c.distance_m for c in seen], [1.0, math.hypot(2.0, 1.0),
+                                                              math.hypot(2.0, 1.0)])
+    # The graph's relative pose: 40 m along keyframe 10's x, turned round.
+    np.testing.assert_allclose(seen[0].T_mq[:3, 3], [40.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(seen[0].T_mq[:3, :3], rot_z(math.pi), atol=1e-12)
+    # A view all round (its centre within its extent of the sensor, as a spinning sensor's):
+    # the position rule stands for it, nothing by view.
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 25.0, views, CFG) == []
+    # A keyframe without a view centre is not proposed; nor anything when none is wanted.
+    assert 10 not in {c.index for c in view_keyframes(
+        hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, {**views, 10: np.full(3, np.nan)},
+        CFG)}
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views,
+                          CFG.replace(graph_candidates=0)) == []
+
+
+def test_no_view_candidates_when_a_keyframe_by_position_saw_the_place() -> None:
+    hint, views = _street_hint()
+    # Driving east again at x = 20.5: the keyframes beside it see what it sees.
+    q = _pose(20.5, 1.0)
+    near = [c.index for c in near_keyframes(hint, 100, 100 * 10**9, q, CFG)]
+    assert near[0] == 10
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views, CFG,
+                          near) == []
+    # Without them the same keyframes come back by their view.
+    assert [c.index for c in view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0],
+                                            10.0, views, CFG)] == near
+
+
+def test_the_view_radius_grows_with_the_heading_uncertainty_at_the_view_centre() -> None:
+    cov = _cov(0.0)
+    cov[3:, 3:] = np.diag([0.0, 0.0, math.radians(1.0) ** 2])
+    # The sensor itself is certain; its view 20 m ahead moves by 20 m x 1 deg per sigma.
+    assert search_radius(cov, CFG) == pytest.approx(5.0)
+    assert search_radius(cov, CFG, view=[20.0, 0.0, 0.0]) == pytest.approx(
+        5.0 + 3.0 * 20.0 * math.radians(1.0))
+    # The lever is the view centre's offset from the newest keyframe: the step, then the view.
+    from solid_ros.core.graphnoise import model_covariance
+
+    step = _pose(10.0, 0.0, math.pi)  # 10 m on, turned round: the view lies 10 m behind
+    odo = float(np.linalg.eigvalsh(model_covariance(step, CFG)[:3, :3])[-1])
+    assert search_radius(cov, CFG, step, [20.0, 0.0, 0.0]) == pytest.approx(
+        5.0 + 3.0 * math.sqrt(odo + (10.0 * math.radians(1.0)) ** 2))
+    assert search_radius(cov, CFG, step) == pytest.approx(
+        5.0 + 3.0 * math.sqrt(odo + (10.0 * math.radians(1.0)) ** 2))
+    assert search_radius(cov, CFG, _pose(10.0), [20.0, 0.0, 0.0]) > search_radius(
+        cov, CFG, _pose(10.0))
+
+
+def test_a_wide_view_reaches_as_far_as_its_extent() -> None:
+    street, views = _street_hint()
+    # Keyframes 0-10 only (x = 0-20 m, their views centred at x = 20-40 m). Driving back west
+    # at x = 72 the sensor sees around x = 52: 12 m beyond keyframe 10's view, 14 m beyond 9's.
+    hint = GraphHint.of(street.indices[:11], street.stamps_ns[:11], street.poses[:11],
+                        street.odom[:11], np.eye(4), _cov(0.0))
+    q = _pose(72.0, 0.0, math.pi)
+    # Beyond the 5 m floor ...
+    assert view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], 4.0, views, CFG) == []
+    # ... but within a view 14.5 m across (RMS): it saw much of the same stretch.
+    seen = view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], 14.5, views, CFG)
+    assert [c.index for c in seen] == [10, 9]
+    assert search_radius(_cov(0.0), CFG, floor=14.0) == pytest.approx(14.0)
+    assert search_radius(_cov(1.0), CFG, floor=14.0) == pytest.approx(15.0)  # the cap
+    assert search_radius(_cov(0.0), CFG, floor=2.0) == pytest.approx(5.0)  # the usual floor
