@@ -113,17 +113,10 @@ def _cloud(points: np.ndarray, stamp_ns: int) -> Any:
 
 
 def _odom(T: np.ndarray, stamp_ns: int) -> Any:
-    from nav_msgs.msg import Odometry
+    sys.path.insert(0, str(ROOT / 'test'))
+    from rclpy_msgs import make_odometry
 
-    from solid_ros.core.geometry import matrix_to_vector
-
-    msg = Odometry()
-    msg.header.frame_id, msg.child_frame_id = 'odom', 'velodyne'
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, NS)
-    x, y, z, qx, qy, qz, qw = (float(v) for v in matrix_to_vector(T))
-    p, o = msg.pose.pose.position, msg.pose.pose.orientation
-    p.x, p.y, p.z, o.x, o.y, o.z, o.w = x, y, z, qx, qy, qz, qw
-    return msg
+    return make_odometry(T, stamp_ns, child='velodyne')
 
 
 def _publisher(name: str, kind: type, topic: str) -> tuple[Any, Any, Any]:

@@ -21,12 +21,12 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from nav_msgs.msg import Path as PathMsg  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from rclpy_msgs import make_cloud  # noqa: E402
+from rclpy_msgs import make_cloud, make_odometry  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
-from solid_ros.core.geometry import matrix_to_vector, vector_to_matrix  # noqa: E402
+from solid_ros.core.geometry import vector_to_matrix  # noqa: E402
 from solid_ros.formats.pointcloud2 import cloud_to_xyz  # noqa: E402
 from solid_ros.formats.pointfiles import read_pcd  # noqa: E402
 from solid_ros.formats.poses import read_kitti_poses, read_tum_poses  # noqa: E402
@@ -44,13 +44,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 
 
 def _odom(stamp_ns: int, T: np.ndarray) -> Odometry:
-    msg = Odometry()
-    msg.header.frame_id, msg.child_frame_id = 'odom', 'lidar'
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, SEC)
-    x, y, z, qx, qy, qz, qw = (float(v) for v in matrix_to_vector(T))
-    p, o = msg.pose.pose.position, msg.pose.pose.orientation
-    p.x, p.y, p.z, o.x, o.y, o.z, o.w = x, y, z, qx, qy, qz, qw
-    return msg
+    return make_odometry(T, stamp_ns)
 
 
 def _pose(msg: Any) -> np.ndarray:
