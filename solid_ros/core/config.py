@@ -372,6 +372,13 @@ class SolidConfig(_Schema):
                                        'metres', low=0.01, high=1e6)
     backend_extra_iterations: int = _p(2, 'Extra iSAM2 iterations after a keyframe with loops',
                                        low=0, high=100)
+    backend_step_registration: str = _p(
+        'auto', 'Register each keyframe to the previous one (seeded by the odometry step, the '
+        "loops' tests and covariance) and add it beside the odometry step as a second between "
+        "factor: 'on', 'off', or 'auto': on when the odometry is KISS-ICP run here on the same "
+        'clouds (a scan-only odometry that can run away in a weak scene), off with an external '
+        'odometry (an IMU-aided one is better between two keyframes; without loops the graph '
+        'then stays the odometry)', choices=('auto', 'on', 'off'), read_only=True)
 
     def _validate_cross(self) -> None:
         if self.fov_up_deg <= self.fov_down_deg:
@@ -389,6 +396,13 @@ class SolidConfig(_Schema):
         """Return a short hash of :meth:`shape_params`."""
         blob = json.dumps(self.shape_params(), sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
+
+    def for_odometry(self, scan_only: bool) -> SolidConfig:
+        """These settings with ``'auto'`` resolved for the odometry in use: ``scan_only``
+        when it is KISS-ICP run here on the same clouds (``backend_step_registration``)."""
+        if self.backend_step_registration != 'auto':
+            return self
+        return self.replace(backend_step_registration='on' if scan_only else 'off')
 
 
 @dataclass(frozen=True)

@@ -129,3 +129,16 @@ def test_integer_for_float_names_the_fix(tmp_path: Path) -> None:
         load_parameter_file(path)
     # Keyword construction in Python stays lenient.
     assert SolidConfig(fov_width_deg=90).fov_width_deg == 90.0
+
+
+def test_auto_step_registration_is_resolved_for_the_odometry_in_use() -> None:
+    cfg = SolidConfig()
+    assert cfg.backend_step_registration == 'auto'
+    assert cfg.for_odometry(scan_only=True).backend_step_registration == 'on'
+    assert cfg.for_odometry(scan_only=False).backend_step_registration == 'off'
+    for mode in ('on', 'off'):  # a setting given stays
+        fixed = cfg.replace(backend_step_registration=mode)
+        assert fixed.for_odometry(scan_only=True) is fixed
+        assert fixed.for_odometry(scan_only=False) is fixed
+    with pytest.raises(ConfigError, match='backend_step_registration'):
+        SolidConfig(backend_step_registration='maybe')
