@@ -34,6 +34,12 @@ graph's, and the descriptor's among them) are verified first, then those by view
 descriptor's other candidates only when they leave fewer than ``max_candidates`` places
 verified. Without a hint nothing changes.
 
+Registered steps (``backend_step_registration`` 'on'; 'auto' is resolved by the replay and the
+node: on with KISS-ICP run on the same clouds): after its loops, :meth:`verify` registers the
+keyframe to this session's previous one, started from the odometry step, through the same
+coarse and fine stages and tests except the single-object test (the place is known), and
+returns it as :attr:`ScanResult.step` for the pose graph (never published).
+
 Acceptance with ``verify`` (see :mod:`solid_ros.core.verification`): every candidate goes
 through the coarse registration; those that pass are verified in order of coarse overlap,
 best first, until ``max_candidates`` distinct places (outside each other's
@@ -103,7 +109,7 @@ _NAN_COV: tuple[float, ...] = (math.nan,) * 36
 # there is none.
 CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | Reason']
 _IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-Source = Literal['descriptor', 'graph']  # what proposed a candidate
+Source = Literal['descriptor', 'graph', 'step']  # what proposed a candidate
 # A keyframe proposed by position alone has no descriptor evidence, so its alignment must be
 # better constrained: in the simulator's cluttered room one at 0.0079 (bar 0.0075) was 5 deg
 # off; hku1's correct graph loops start at 0.0076, then 0.0106.
@@ -144,7 +150,8 @@ class LoopCandidate:
         spread: the constraint without the strongest object (NaN: not measured).
         source: what proposed it: ``'descriptor'`` (the descriptor's nearest places) or
             ``'graph'`` (a keyframe near the query in the back end's estimate, see
-            :mod:`solid_ros.core.proposals`; its ``margin`` is NaN).
+            :mod:`solid_ros.core.proposals`; its ``margin`` is NaN), or ``'step'`` (the
+            previous keyframe, :attr:`ScanResult.step`; never published).
     """
 
     query_index: int
@@ -202,6 +209,7 @@ class StageTimes:
     describe: float = math.nan
     search: float = math.nan
     verify: float = math.nan
+    step: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -220,6 +228,9 @@ class ScanResult:
             eligible); offline PR curves need it.
         times: milliseconds per stage.
         descriptor: its descriptor (None when gated out or given as a descriptor).
+        step: this keyframe registered to the previous one of this session, seeded by the
+            odometry step and verified by the loops' tests (``backend_step_registration``
+            'on'; source ``'step'``, never published as a loop), or None.
     """
 
     stamp_ns: int
@@ -231,6 +242,7 @@ class ScanResult:
     best: LoopCandidate | None = None
     times: StageTimes = StageTimes()
     descriptor: Descriptor | None = None
+    step: LoopCandidate | None = None
 
 
 @dataclass
@@ -251,6 +263,7 @@ class Proposal:
         descriptor: its descriptor (None when given as a descriptor).
         describe_ms: time spent levelling and describing, milliseconds.
         search_ms: time spent searching and storing the descriptor, milliseconds.
+        query: its cloud prepared for registration (set by :meth:`LoopDetector.verify`).
     """
 
     query_index: int
@@ -265,6 +278,7 @@ class Proposal:
     descriptor: Descriptor | None = None
     describe_ms: float = math.nan
     search_ms: float = math.nan
+    query: Query | None = None
 
 
 class LoopDetector:
@@ -553,11 +567,39 @@ class LoopDetector:
             taken.append(c)
         if taken:
             self._last_loop_query = proposal.query_index
-        times = StageTimes(proposal.describe_ms, proposal.search_ms,
-                           (time.perf_counter() - t0) * 1e3)
+        t1 = time.perf_counter()
+        step = self._register_step(proposal) if cfg.backend_step_registration == 'on' else None
+        times = StageTimes(proposal.describe_ms, proposal.search_ms, (t1 - t0) * 1e3,
+                           (time.perf_counter() - t1) * 1e3 if step is not None else math.nan)
         return ScanResult(proposal.stamp_ns, True, proposal.query_index, proposal.pose,
                           tuple(taken), tuple(attempts), proposal.best, times,
-                          proposal.descriptor)
+                          proposal.descriptor, step)
+
+    def _register_step(self, proposal: Proposal) -> LoopCandidate | None:
+        """The keyframe registered to this session's previous one from the odometry step
+        (the loops' coarse and fine stages and tests); None without a pose, a cloud or a
+        verified alignment. It corrects an odometry that ran away between two keyframes."""
+        prev = proposal.query_index - 1
+        seq = self._own_seqs.get(prev)
+        query = proposal.query
+        if (self.verifier is None or query is None or proposal.pose is None or seq is None
+                or not self.database.is_stored(seq)):
+            return None
+        pose_prev = self.database.pose(seq)
+        cloud = self.clouds.get(seq)
+        if pose_prev is None or cloud is None:
+            return None
+        step = np.linalg.solve(vector_to_matrix(pose_prev), vector_to_matrix(proposal.pose))
+        key = (self._config.session_id, seq)
+        fine = self.verifier.fine(query, self.verifier.coarse(
+            query, key, cloud, [], (self._level_pose(np.asarray(step, dtype=np.float64)),)),
+            step=True)
+        if not fine.verified:
+            return None
+        _, _, stamp = self.database.match_info(seq)
+        hit = _Hit(Match(seq, prev, self._config.session_id, stamp, math.nan), math.nan,
+                   np.zeros(0, dtype=np.float32), 'step')
+        return self._candidate(proposal, hit, 0.0, fine)
 
     def _with_graph_hits(self, proposal: Proposal, hint: GraphHint) -> list[_Hit]:
         """The proposal's hits with the graph's guesses, then the keyframes near the query
@@ -658,6 +700,7 @@ class LoopDetector:
         clouds, fetched = self._candidate_clouds(proposal, gap_blocked)
         query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
                                  else np.zeros((0, 3)))
+        proposal.query = query
         if query.usable:
             self.clouds.put(proposal.seq, query.keyframe_cloud())
         self.clouds.drop_before(self.database.oldest_seq)

@@ -235,8 +235,10 @@ class Verifier:
                 'coarse_overlap', al.T_qm, coarse_overlap=al.coarse_overlap))
         return CoarseResult(key, src, al, None)
 
-    def fine(self, query: Query, coarse: CoarseResult) -> Verification:
-        """Fine stage and tests 4-8 of a candidate that passed :meth:`coarse`."""
+    def fine(self, query: Query, coarse: CoarseResult, step: bool = False) -> Verification:
+        """Fine stage and tests 4-10 of a candidate that passed :meth:`coarse`; a ``step``
+        (two consecutive keyframes, started from the odometry) skips test 9: whether one
+        object matched another like it is a question of place, and the place is known."""
         if coarse.rejection is not None:
             return coarse.rejection
         assert coarse.source is not None and coarse.alignment is not None
@@ -261,7 +263,7 @@ class Verifier:
         if not sup.constraint >= cfg.verify_min_constraint:
             return _rejected('constraint', T_qm, **scores)
         scores['spread'] = sup.spread
-        if not (sup.spread >= cfg.verify_min_spread
+        if not (step or sup.spread >= cfg.verify_min_spread
                 or (sup.overlap >= cfg.verify_single_object_overlap
                     and sup.conflict <= cfg.verify_max_conflict / 2.0)):
             return _rejected('single_object', T_qm, **scores)

@@ -385,3 +385,33 @@ def test_levelling_a_pose_and_back_is_the_identity() -> None:
     level = det._level_pose(T)
     assert not np.allclose(level, T)
     np.testing.assert_allclose(det._unlevel(level), T, atol=1e-12)
+
+
+@pytest.mark.parametrize('mode', ['on', 'off', 'auto'])
+def test_a_keyframe_is_registered_to_the_previous_one_from_the_odometry_step(mode: str) -> None:
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    from solid_ros.core.geometry import matrix_to_vector, rot_z
+    from solid_ros.sim.drive import Drive, DriveConfig
+
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
+    first, second = drive.scan(10), drive.scan(11)
+    truth = np.linalg.solve(first.pose, second.pose)
+    ran_away = second.pose.copy()  # the odometry overshot sideways and turned
+    ran_away[:3, :3] = second.pose[:3, :3] @ rot_z(math.radians(3.0))
+    ran_away[:3, 3] += second.pose[:3, :3] @ np.array([0.3, 0.5, 0.0])
+    det = LoopDetector(SolidConfig(verify_voxel_size=0.5, verify_coarse_voxel_size=1.5,
+                                   backend_step_registration=mode))
+    assert det.process(first.points, SEC, matrix_to_vector(first.pose)).step is None
+    res = det.process(second.points, 2 * SEC, matrix_to_vector(ran_away))
+    if mode != 'on':  # 'auto' is resolved by the replay and the node, never by the detector
+        assert res.step is None and math.isnan(res.times.step)
+        return
+    step = res.step
+    assert step is not None and step.source == 'step' and step.verified
+    assert (step.query_index, step.match_index, step.match_stamp_ns) == (1, 0, SEC)
+    err = np.linalg.solve(truth, step.matrix())
+    assert np.linalg.norm(err[:3, 3]) < 0.1
+    assert math.degrees(math.acos(min(1.0, (np.trace(err[:3, :3]) - 1) / 2))) < 0.5
+    cov = np.asarray(step.covariance).reshape(6, 6)
+    assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert res.times.step > 0.0 and not res.loops  # a step is never published as a loop
