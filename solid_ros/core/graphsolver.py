@@ -43,6 +43,7 @@ class FactorRecord:
     Attributes:
         kind: ``'anchor'`` or ``'prior'`` (unary on ``keys[0]``: the session's anchor, a
             segment's weak prior), ``'odom'`` (between ``keys[0]`` and ``keys[1]``),
+            ``'step'`` (the same keyframes registered to each other),
             ``'loop'`` (between match and query) or ``'map_loop'`` (unary on the query, from a
             loop to a fixed keyframe of a loaded map).
         keys: gtsam keys, one or two.
@@ -146,7 +147,7 @@ class GraphSolver:
         if self._rebuild():
             return reason
         for rec in records:  # the new factors cannot be solved: drop them, keep the variables
-            rec.dropped = rec.kind in ('loop', 'map_loop')
+            rec.dropped = rec.kind in ('loop', 'map_loop', 'step')
         if self._rebuild():
             return reason + ' (the new loops were dropped)'
         raise BackendError(f'the pose graph cannot be rebuilt after a gtsam failure: {reason}')

@@ -350,3 +350,49 @@ def test_a_long_loop_free_chain_stays_solvable() -> None:
                           OdomSample(k * SEC, T))
     assert state.added and state.covariance is not None and pg.rebuilds == 0
     assert np.all(np.isfinite(state.covariance))
+
+
+def _step(ref: np.ndarray, k: int, cov: tuple[float, ...] = LOOP_COV,
+          match: int | None = None) -> LoopCandidate:
+    """Keyframe k registered to keyframe ``match`` (default k - 1): the true step."""
+    m = k - 1 if match is None else match
+    rel = np.linalg.solve(ref[m], ref[k])
+    return LoopCandidate(k, m, k * SEC, m * SEC, 0, math.nan, 0.0, math.nan, True,
+                         tuple(matrix_to_vector(rel)), covariance=cov, reason='verified',
+                         source='step')
+
+
+def test_registered_steps_pull_back_an_odometry_that_ran_away() -> None:
+    ref = square(60)
+    odo = ref.copy()
+    kick = np.eye(4)
+    kick[:3, 3] = [0.0, 0.8, 0.0]  # KISS-ICP in a corridor: 0.8 m sideways at keyframe 30
+    odo[30:] = np.einsum('ij,kjl->kil', ref[29] @ kick @ np.linalg.inv(ref[29]), ref[30:])
+    # Registered as well as the odometry's model says it drives: the graph must still not
+    # split the difference.
+    cov = tuple(np.diag([0.05 ** 2] * 3 + [math.radians(0.3) ** 2] * 3).ravel())
+    steps = {k: _step(ref, k, cov) for k in range(1, 60)}
+    steps[45] = _step(ref, 45, cov, match=43)  # not to the previous keyframe: no factor
+    del steps[50]  # no registration: the odometry alone
+    pg, plain = PoseGraph(CFG), PoseGraph(CFG)
+    for k, T in enumerate(odo):
+        res = ScanResult(k * SEC, True, k, matrix_to_vector(T), step=steps.get(k))
+        pg.update(res, OdomSample(k * SEC, T))
+        plain.update(ScanResult(k * SEC, True, k, matrix_to_vector(T)), OdomSample(k * SEC, T))
+    assert pg.steps == 57 and plain.steps == 0
+    assert ate(plain, ref) > 0.5
+    assert ate(pg, ref) < 0.1  # the odometry factor is robust where a registered step exists
+
+
+def test_no_registered_step_across_a_segment_break() -> None:
+    ref = square(40)
+    odo = ref.copy()
+    reset = np.eye(4)
+    reset[:3, 3] = [-300.0, 40.0, 0.0]
+    odo[20:] = reset @ odo[20:]
+    pg = PoseGraph(CFG)
+    states = [pg.update(ScanResult(k * SEC, True, k, matrix_to_vector(T), step=_step(ref, k)
+                                   if k else None), OdomSample(k * SEC, T))
+              for k, T in enumerate(odo)]
+    assert [s.segment for s in states[19:21]] == [0, 1]
+    assert pg.steps == 38  # all but keyframe 0 and the first of the new segment
