@@ -148,7 +148,7 @@ class GraphOutput:
         out: dict[str, object] = {
             'backend_keyframes': len(snap.stamps_ns), 'backend_loops': snap.loops,
             'backend_anchored': graph.anchored, 'backend_rebuilds': graph.rebuilds,
-            'backend_failures': self.failures}
+            'backend_failures': self.failures, 'backend_steps': graph.steps}
         for reason, count in sorted(dict(graph.counts).items()):
             out[f'backend_loop_{reason}'] = count
         return out

@@ -103,7 +103,8 @@ class SolidNode(Node):
         super().__init__('solid_node', context=context, cli_args=cli_args,
                          parameter_overrides=parameter_overrides)
         try:
-            self._solid_cfg, self._node_cfg = declare_all(self)
+            solid, self._node_cfg = declare_all(self)
+            self._solid_cfg = solid.for_odometry(self._node_cfg.odometry_source == 'kiss_icp')
             self._shared = SharedDetector(self._new_detector(load=True))
         except BaseException:
             super().destroy_node()

@@ -102,7 +102,8 @@ def replay(bag: str | Path, config: SolidConfig | None = None,
         TypeError: a change names no option.
     """
     opts = ReplayOptions.of(options, **changes)
-    cfg = config if config is not None else SolidConfig()
+    cfg = (config if config is not None else SolidConfig()).for_odometry(
+        opts.feed_odom and opts.odometry_mode == 'kiss-icp')
     poses = load_reference(opts.poses, opts.times) if opts.poses is not None else None
     if opts.save_db is not None:
         check_save_target(opts.save_db)  # refuse before the run, not after it

@@ -104,7 +104,7 @@ def closure_report(inputs: BagInputs, log: ScanLog, closure: LoopClosure, traj: 
     graph = closure.graph
     backend = None if graph is None else {
         'loops': {k: v for k, v in sorted(graph.counts.items()) if v},  # no zero counts
-        'loops_in_graph': len(graph.loops),
+        'loops_in_graph': len(graph.loops), 'steps': graph.steps,
         'segments': len(set(traj.segments[traj.segments >= 0].tolist())),
         'anchored': graph.anchored, 'rebuilds': graph.rebuilds,
         'correction': [float(v) for v in graph.correction().ravel()]}

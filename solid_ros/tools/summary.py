@@ -85,8 +85,9 @@ def _closure_lines(rep: dict[str, Any]) -> list[str]:
     loops = ', '.join(f'{k} {v}' for k, v in be['loops'].items()) or 'no loop'
     events = {k: v for k, v in rep['events']['counts'].items() if k != 'odometry_reset'}
     lines.append(f'  back end          {be["loops_in_graph"]} loops in the graph ({loops}); '
-                 f'{be["segments"]} segment(s)' + (', anchored in the loaded map'
-                                                   if be['anchored'] else '')
+                 f'{be["segments"]} segment(s)'
+                 + (f', {be["steps"]} registered steps' if be.get('steps') else '')
+                 + (', anchored in the loaded map' if be['anchored'] else '')
                  + (f'; events {", ".join(f"{k} {v}" for k, v in events.items())}'
                     if events else ''))
     return lines

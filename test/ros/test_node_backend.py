@@ -176,3 +176,6 @@ def test_kiss_icp_odometry_gates_keyframes_and_closes_the_revisit(
     got = [key(c) for c in h.candidates]
     assert revisits(got, hku1), got  # the end-of-run revisit, verified
     assert all(c['verified'] == 1 for c in h.candidates)
+    # With KISS-ICP (a scan-only odometry) 'auto' registers each keyframe to the previous one.
+    assert h.node.solid_config.backend_step_registration == 'on'
+    h.wait_for(lambda: int(h.status().get('backend_steps', 0)) > 0, 'registered steps')

@@ -188,7 +188,7 @@ def test_kiss_icp_gives_a_pose_per_cloud_and_the_bag_odometry_is_the_reference(
 
 def test_a_clouds_only_bag_gets_keyframes_and_the_back_end_with_kiss_icp(
         hku1_bags: dict[str, Path]) -> None:
-    from solid_ros.tools.replay import replay
+    from solid_ros.tools.replay import replay, summary_lines
 
     cfg, ncfg = _avia()
     plain = replay(hku1_bags['clouds'], cfg, node_config=ncfg, progress='quiet')
@@ -201,3 +201,8 @@ def test_a_clouds_only_bag_gets_keyframes_and_the_back_end_with_kiss_icp(
     # Keyframes every 0.5 m or 10 deg of KISS-ICP's motion: fewer than the clouds, all posed.
     assert 2 <= r.keyframes < HKU1_CLOUDS and r.trajectory.posed.all()
     assert [kf['segment'] for kf in r.report['keyframes']] == [0] * r.keyframes
+    # A scan-only odometry: 'auto' registers each keyframe to the previous one as well.
+    assert plain.config.backend_step_registration == 'off'
+    assert r.config.backend_step_registration == 'on'
+    assert 0 < r.report['backend']['steps'] <= r.keyframes - 1
+    assert 'registered steps' in '\n'.join(summary_lines(r))
