@@ -10,7 +10,7 @@ import numpy as np
 
 __all__ = ['NodeStats', 'StageTimings']
 
-STAGES = ('describe', 'search', 'verify')
+STAGES = ('describe', 'search', 'verify', 'step')
 
 
 @dataclass

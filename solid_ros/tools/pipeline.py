@@ -38,7 +38,7 @@ from solid_ros.tools.progress import Progress
 __all__ = ['STAGES', 'BagInputs', 'OdometryWrap', 'ReplayPipeline', 'ScanLog', 'ScanRecord',
            'published_best']
 
-STAGES = ('describe', 'search', 'verify')  # the detector's stages, as in StageTimes
+STAGES = ('describe', 'search', 'verify', 'step')  # the detector's stages, as in StageTimes
 _KEEP_LINES = 200  # log lines (back-end events, odometry resets) kept for the report
 
 # Wraps the odometry source the options chose (None: none), e.g. with a fixed transform.
