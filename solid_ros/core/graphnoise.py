@@ -31,7 +31,7 @@ from solid_ros.core.config import SolidConfig
 from solid_ros.core.odometry import usable_covariance
 
 __all__ = ['StepNoise', 'floored', 'loop_covariance', 'model_covariance', 'odometry_step_noise',
-           'rotation_angle', 'swap_blocks']
+           'rotation_angle', 'swap_blocks', 'unchecked_covariance']
 
 FloatArray = npt.NDArray[np.float64]
 _SWAP = np.array([3, 4, 5, 0, 1, 2])
@@ -117,6 +117,17 @@ def odometry_step_noise(step: npt.ArrayLike, cov_before: npt.ArrayLike | None,
             chosen = grown
     return StepNoise(floored(chosen, config.backend_odom_floor_m,
                              math.radians(config.backend_odom_floor_deg)), 'odometry')
+
+
+def unchecked_covariance(step: npt.ArrayLike, covariance: npt.ArrayLike) -> FloatArray:
+    """A scan-only odometry's step that no registration could check: its covariance with
+    each translation sigma at least the step's length and each rotation sigma at least the
+    angle turned (the step is known up to its own size, no better)."""
+    T = np.asarray(step, dtype=np.float64)
+    out = np.array(covariance, dtype=np.float64).reshape(6, 6)
+    least = np.repeat([float(np.linalg.norm(T[:3, 3])) ** 2, rotation_angle(T) ** 2], 3)
+    out[np.diag_indices(6)] = np.maximum(np.diag(out), least)
+    return out
 
 
 def loop_covariance(covariance: npt.ArrayLike, config: SolidConfig) -> FloatArray | None:

@@ -20,12 +20,14 @@ true first loop passes (or waits one keyframe).
 
 Registered steps. With ``backend_step_registration`` on, the detector registers each keyframe
 to the previous one (:attr:`ScanResult.step`); the result is a second between factor beside
-the odometry step, least squares with its covariance and the loop floors, and the odometry
-step then takes the loop kernel (Huber): where the two agree both count, where they disagree
+the odometry step, least squares with its covariance and the loop floors. The odometry
+steps then take the loop kernel (Huber): where the two agree both count, where they disagree
 by many sigmas the clouds win. A scan-only odometry that ran away in a weak scene (KISS-ICP
-on hku1: steps 0.6-0.8 m against 0.1-0.2 m) is pulled back; without a registered step (the
-registration failed a test) the odometry alone links the keyframes. Not across a segment
-break.
+on hku1: steps 0.6-0.8 m against 0.1-0.2 m) is pulled back. Where the step's registration
+failed a test (a hard scene for the odometry too: hku1's keyframe 62, whose KISS-ICP step is
+1.2 m off) the odometry step alone links the keyframes, robust and with
+:func:`~solid_ros.core.graphnoise.unchecked_covariance` (as uncertain as it is long), so a
+loop that contradicts it is not refused by the gate. Not across a segment break.
 
 Segments (:mod:`solid_ros.core.segments`). An odometry step longer than
 ``backend_segment_jump_m`` (a jump, a reset) gets no odometry factor: the keyframe starts a new
@@ -62,6 +64,7 @@ from solid_ros.core.graphnoise import (
     loop_covariance,
     odometry_step_noise,
     rotation_angle,
+    unchecked_covariance,
 )
 from solid_ros.core.graphsolver import FactorRecord, GraphSolver
 from solid_ros.core.graphtypes import (
@@ -217,9 +220,14 @@ class PoseGraph:
                                'noise model is used instead')
                 rec = FactorRecord('odom', (key_of(prev.index), key), step, noise.covariance)
         recs = [rec]
-        if rec.kind == 'odom' and registered is not None and prev is not None:
-            recs += self._step_record(prev, key, registered)
-            rec.robust = len(recs) > 1
+        if rec.kind == 'odom' and cfg.backend_step_registration == 'on':
+            # A scan-only odometry: robust, so that registered steps and loops outvote a step
+            # that ran away; one the clouds could not check is as uncertain as it is long.
+            rec.robust = True
+            if registered is not None and prev is not None:
+                recs += self._step_record(prev, key, registered)
+            if len(recs) == 1:
+                rec.covariance = unchecked_covariance(rec.measured, rec.covariance)
         kf = _Kf(index, stamp_ns, T, cov, self._segment, 0 if odom is None else odom.segment)
         self._note_rebuild(self._solver.add(recs, {key: init}), events)
         self._kfs[index] = kf

@@ -86,3 +86,16 @@ def test_loop_covariance_gets_the_loop_floors() -> None:
     assert math.sqrt(got[0, 0]) >= CFG.backend_loop_floor_m
     assert math.degrees(math.sqrt(got[5, 5])) >= CFG.backend_loop_floor_deg
     assert loop_covariance((math.nan,) * 36, CFG) is None
+
+
+def test_an_unchecked_step_is_known_up_to_its_own_size() -> None:
+    from solid_ros.core.graphnoise import unchecked_covariance
+
+    step = np.eye(4)
+    step[:3, :3] = rot_z(math.radians(10.0))
+    step[:3, 3] = [0.6, 0.8, 0.0]  # 1 m, 10 deg
+    cov = np.full((6, 6), 1e-6) + np.diag([1e-4] * 3 + [4.0] * 3)  # rotation already loose
+    out = unchecked_covariance(step, cov)
+    np.testing.assert_allclose(np.diag(out), [1.0] * 3 + [4.0 + 1e-6] * 3)
+    np.testing.assert_allclose(out - np.diag(np.diag(out)), cov - np.diag(np.diag(cov)))
+    assert np.all(np.linalg.eigvalsh(out) > 0)

@@ -352,6 +352,9 @@ def test_a_long_loop_free_chain_stays_solvable() -> None:
     assert np.all(np.isfinite(state.covariance))
 
 
+STEPS = CFG.replace(backend_step_registration='on')
+
+
 def _step(ref: np.ndarray, k: int, cov: tuple[float, ...] = LOOP_COV,
           match: int | None = None) -> LoopCandidate:
     """Keyframe k registered to keyframe ``match`` (default k - 1): the true step."""
@@ -374,7 +377,7 @@ def test_registered_steps_pull_back_an_odometry_that_ran_away() -> None:
     steps = {k: _step(ref, k, cov) for k in range(1, 60)}
     steps[45] = _step(ref, 45, cov, match=43)  # not to the previous keyframe: no factor
     del steps[50]  # no registration: the odometry alone
-    pg, plain = PoseGraph(CFG), PoseGraph(CFG)
+    pg, plain = PoseGraph(STEPS), PoseGraph(CFG)
     for k, T in enumerate(odo):
         res = ScanResult(k * SEC, True, k, matrix_to_vector(T), step=steps.get(k))
         pg.update(res, OdomSample(k * SEC, T))
@@ -390,9 +393,26 @@ def test_no_registered_step_across_a_segment_break() -> None:
     reset = np.eye(4)
     reset[:3, 3] = [-300.0, 40.0, 0.0]
     odo[20:] = reset @ odo[20:]
-    pg = PoseGraph(CFG)
+    pg = PoseGraph(STEPS)
     states = [pg.update(ScanResult(k * SEC, True, k, matrix_to_vector(T), step=_step(ref, k)
                                    if k else None), OdomSample(k * SEC, T))
               for k, T in enumerate(odo)]
     assert [s.segment for s in states[19:21]] == [0, 1]
     assert pg.steps == 38  # all but keyframe 0 and the first of the new segment
+
+
+
+def test_an_unchecked_step_of_a_scan_only_odometry_is_as_uncertain_as_it_is_long() -> None:
+    ref = square(40)
+    cov = tuple(np.diag([0.02 ** 2] * 3 + [math.radians(0.1) ** 2] * 3).ravel())
+    grown = {}
+    for missing in (None, 30):  # keyframe 30's registration failed a test, or did not
+        pg = PoseGraph(STEPS)
+        states = [pg.update(ScanResult(k * SEC, True, k, matrix_to_vector(T),
+                                       step=_step(ref, k, cov) if k and k != missing else None),
+                            OdomSample(k * SEC, T)) for k, T in enumerate(ref)]
+        before, after = states[29].covariance, states[30].covariance
+        assert before is not None and after is not None
+        grown[missing] = float(np.trace(after[:3, :3]) - np.trace(before[:3, :3]))
+    assert grown[None] < 0.01  # checked: the model's and the registration's few centimetres
+    assert grown[30] > 2.5  # unchecked: 1 m sigmas on x, y, z (the step is 1 m long)
