@@ -228,6 +228,10 @@ class PoseGraph:
                 recs += self._step_record(prev, key, registered)
             if len(recs) == 1:
                 rec.covariance = unchecked_covariance(rec.measured, rec.covariance)
+            elif prev is not None:
+                # Start from the registered step: one iSAM2 step from the odometry's guess
+                # weighs a runaway odometry step fully (the kernel sees no residual there).
+                init = self._solver.values[key_of(prev.index)] @ recs[1].measured
         kf = _Kf(index, stamp_ns, T, cov, self._segment, 0 if odom is None else odom.segment)
         self._note_rebuild(self._solver.add(recs, {key: init}), events)
         self._kfs[index] = kf
