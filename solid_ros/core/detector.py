@@ -568,9 +568,11 @@ class LoopDetector:
         if taken:
             self._last_loop_query = proposal.query_index
         t1 = time.perf_counter()
-        step = self._register_step(proposal) if cfg.backend_step_registration == 'on' else None
+        stepping = cfg.backend_step_registration == 'on'
+        step = self._register_step(proposal) if stepping else None
+        # Timed whenever tried: a step that fails a test cost as much as one that passes.
         times = StageTimes(proposal.describe_ms, proposal.search_ms, (t1 - t0) * 1e3,
-                           (time.perf_counter() - t1) * 1e3 if step is not None else math.nan)
+                           (time.perf_counter() - t1) * 1e3 if stepping else math.nan)
         return ScanResult(proposal.stamp_ns, True, proposal.query_index, proposal.pose,
                           tuple(taken), tuple(attempts), proposal.best, times,
                           proposal.descriptor, step)
