@@ -167,6 +167,16 @@ def section_cost(first: ReplayResult, wall: float) -> None:
     print(f'  back end per keyframe                   {pct(log.backend_ms)}')
     steps = [v for v in log.stage_ms('step') if math.isfinite(v)]
     print(f'  step registration per keyframe          {pct(steps)}')
+    from bench_graph_candidates import _cpp, _cpp_describe_ms
+
+    with tempfile.TemporaryDirectory() as tmp:
+        exe = _cpp(Path(tmp), False)
+        if exe is not None:
+            c = _cpp_describe_ms(exe)
+            print(f"  the authors' C++ describe of KITTI 313 in this run: {c:.2f} ms CPU; as "
+                  f'multiples of it (median): describe '
+                  f'{np.nanmedian(log.stage_ms("describe")) / c:.2f}x, step registration '
+                  f'{np.median(steps) / c:.2f}x, back end {np.median(log.backend_ms) / c:.2f}x')
 
 
 def section_sim(sensors: list[str], cache: Path | None, with_steps: bool) -> None:
