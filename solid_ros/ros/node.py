@@ -463,6 +463,8 @@ class SolidNode(Node):
         self._stages.stop(_JOIN_SEC)
         if self._backend is not None:
             self._backend.stop(_JOIN_SEC)
+        if self._peers is not None:
+            self._peers.close()
         super().destroy_node()
 
 

@@ -9,7 +9,8 @@ Topics (absolute, shared by every robot of one ROS domain; remappable), all
   every peer for its stored descriptors (the catch-up, at most ``peer_catchup`` each).
   Reliable, history 100.
 - ``/solid/clouds``: the owner's reply (the keyframe cloud, ~12 bytes a point, or "no longer
-  stored"). Reliable, history 10.
+  stored"). Reliable, history 10. Sent from a participant of its own
+  (:mod:`solid_ros.ros.bulk_participant`, node ``<name>_bulk``), as the back end's map is.
 
 QoS for a lossy wireless link: reliable delivery with bounded histories retransmits what was
 lost without letting a slow link grow memory; volatile durability plus the explicit catch-up
@@ -67,6 +68,7 @@ from solid_ros.formats.peers import (
     reply_bytes,
     reply_requester,
 )
+from solid_ros.ros.bulk_participant import BulkParticipant
 from solid_ros.ros.memory import LARGE_BYTES, Renewal
 from solid_ros.ros.peer_fetch import CloudFetches, Pending
 from solid_ros.ros.peer_guard import PeerGuard, Refused, parse_allowlist
@@ -142,7 +144,10 @@ class PeerLink:
 
         self._pub_desc = node.create_publisher(UInt8MultiArray, DESCRIPTOR_TOPIC, qos(100))
         self._pub_req = node.create_publisher(UInt8MultiArray, REQUEST_TOPIC, qos(100))
-        self._pub_reply = node.create_publisher(UInt8MultiArray, REPLY_TOPIC, qos(10))
+        # Cloud replies (up to MBs) from a participant of their own: from the node's they
+        # would overrun its shared-memory segment and take its /tf and loops with them.
+        self._bulk = BulkParticipant(node)
+        self._pub_reply = self._bulk.create_publisher(UInt8MultiArray, REPLY_TOPIC, qos(10))
 
         def subscription(topic: str, handle: Callable[[Any], None], depth: int) -> Renewal:
             return Renewal(lambda: node.create_subscription(UInt8MultiArray, topic, handle,
@@ -357,6 +362,10 @@ class PeerLink:
             return
         if rep.requester == self.robot:
             self._fetches.deliver(rep)
+
+    def close(self) -> None:
+        """Close the participant of the cloud replies (idempotent)."""
+        self._bulk.close()
 
     def diagnostics(self) -> dict[str, object]:
         """Counters and peers for /diagnostics (keys prefixed ``peer_``; bounded size)."""

@@ -186,6 +186,10 @@ def test_two_robots_find_each_others_places(fleet: Fleet) -> None:
     # Robot 0 stored robot 1's keyframes as they came and served the clouds.
     assert fleet.nodes[0]._peers.counts['descriptors_stored'] == len(b_scans)
     assert fleet.nodes[0]._peers.counts['clouds_served'] >= 1
+    # The replies (clouds) leave from each node's bulk participant, not the node's own.
+    senders = {i.node_namespace + '/' + i.node_name
+               for i in fleet.client.get_publishers_info_by_topic('/solid/clouds')}
+    assert senders == {'/r0/solid_node_bulk', '/r1/solid_node_bulk'}, senders
 
 
 def test_bad_peers_are_counted_and_ignored(fleet: Fleet) -> None:
