@@ -530,11 +530,14 @@ class LoopDetector:
         return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
                         np.asarray(desc.r_solid, dtype=np.float64), vec, chosen, best)
 
-    def verify(self, proposal: Proposal, hint: GraphHint | None = None) -> ScanResult:
+    def verify(self, proposal: Proposal, hint: GraphHint | None = None, *,
+               step: bool = True) -> ScanResult:
         """Verification stage for one :meth:`propose` result; call in keyframe order.
 
         Stores the keyframe's cloud, verifies the candidates and applies ``max_candidates``
         and ``min_loop_gap``; the result's ``attempts`` lists every candidate looked at.
+        With ``step`` (and ``backend_step_registration`` 'on') it also registers the step
+        from the previous keyframe (:meth:`with_step`).
 
         With a ``hint`` (the pose graph after the previous keyframe), ``graph_candidates`` on,
         verification on and an odometry pose for the keyframe, the keyframes near it in the
@@ -567,15 +570,24 @@ class LoopDetector:
             taken.append(c)
         if taken:
             self._last_loop_query = proposal.query_index
-        t1 = time.perf_counter()
-        stepping = cfg.backend_step_registration == 'on'
-        step = self._register_step(proposal) if stepping else None
+        times = StageTimes(proposal.describe_ms, proposal.search_ms,
+                           (time.perf_counter() - t0) * 1e3)
+        result = ScanResult(proposal.stamp_ns, True, proposal.query_index, proposal.pose,
+                            tuple(taken), tuple(attempts), proposal.best, times,
+                            proposal.descriptor)
+        return self.with_step(result, proposal) if step else result
+
+    def with_step(self, result: ScanResult, proposal: Proposal) -> ScanResult:
+        """``result`` (of :meth:`verify` with ``step=False``) with its registered step, when
+        ``backend_step_registration`` is 'on' (else unchanged): a node publishes the loops
+        first and registers the step for the pose graph after."""
+        if self._config.backend_step_registration != 'on':
+            return result
+        t0 = time.perf_counter()
+        step = self._register_step(proposal)
         # Timed whenever tried: a step that fails a test cost as much as one that passes.
-        times = StageTimes(proposal.describe_ms, proposal.search_ms, (t1 - t0) * 1e3,
-                           (time.perf_counter() - t1) * 1e3 if stepping else math.nan)
-        return ScanResult(proposal.stamp_ns, True, proposal.query_index, proposal.pose,
-                          tuple(taken), tuple(attempts), proposal.best, times,
-                          proposal.descriptor, step)
+        times = replace(result.times, step=(time.perf_counter() - t0) * 1e3)
+        return replace(result, times=times, step=step)
 
     def _register_step(self, proposal: Proposal) -> LoopCandidate | None:
         """The keyframe registered to this session's previous one from the odometry step

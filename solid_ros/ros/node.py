@@ -383,15 +383,23 @@ class SolidNode(Node):
     def _hand_on(self, verified: Verified) -> None:
         """Every verified keyframe, in keyframe order, on the verify thread (the describe
         thread with ``verify`` off): the one place where each keyframe's result and paired
-        odometry go: the loops out first, then the pose graph. Its stamps are the clouds'
-        header stamps again (see :mod:`~solid_ros.ros.stamp_guard`).
+        odometry go: the loops out first, then (with its registered step) the pose graph. Its
+        stamps are the clouds' header stamps again (see :mod:`~solid_ros.ros.stamp_guard`).
         """
-        if self._stamps.shifted:
-            verified = dataclasses.replace(verified, result=self._stamps.restore(
-                verified.result, self._solid_cfg.session_id))
-        self._loop_output.take(verified)
+        self._loop_output.take(self._restored(verified))
         if self._backend is not None:
-            self._backend.take(verified)
+            # The registered step only now, so that the loops do not wait for it.
+            result = self._shared.with_step(verified.result, verified.proposal,
+                                            verified.detector)
+            if math.isfinite(result.times.step):  # registered steps are on
+                self._stages.timings.add('step', result.times.step)
+            self._backend.take(self._restored(dataclasses.replace(verified, result=result)))
+
+    def _restored(self, verified: Verified) -> Verified:
+        if not self._stamps.shifted:
+            return verified
+        return dataclasses.replace(verified, result=self._stamps.restore(
+            verified.result, self._solid_cfg.session_id))
 
     # -- services and diagnostics -----------------------------------------------------------
 

@@ -114,16 +114,26 @@ class SharedDetector:
     def verify(self, proposal: Proposal,
                hint: GraphHint | None = None) -> tuple[ScanResult, LoopDetector]:
         """Stage 2: fetch the proposal's peer clouds (:meth:`fetch_clouds`) without a lock,
-        then :meth:`LoopDetector.verify` (with the pose graph's ``hint``) under the stage-2
-        lock; also returns the detector that verified (a reset may replace it right after)."""
+        then :meth:`LoopDetector.verify` (with the pose graph's ``hint``, without the
+        registered step: :meth:`with_step`) under the stage-2 lock; also returns the detector
+        that verified (a reset may replace it right after)."""
         fetched = self.fetch_clouds(proposal)
         with self._verify_lock:
             detector = self._detector
             self._fetched = fetched
             try:
-                return detector.verify(proposal, hint), detector
+                return detector.verify(proposal, hint, step=False), detector
             finally:
                 self._fetched = {}
+
+    def with_step(self, result: ScanResult, proposal: Proposal,
+                  detector: LoopDetector) -> ScanResult:
+        """:meth:`LoopDetector.with_step` under the stage-2 lock, after the loops of
+        :meth:`verify` went out; ``result`` unchanged when a reset replaced ``detector``."""
+        with self._verify_lock:
+            if detector is not self._detector:
+                return result
+            return detector.with_step(result, proposal)
 
     def _collected(self, robot: int, index: int, stamp_ns: int) -> KeyframeCloud | Reason:
         """The detector's ``fetch_cloud``: only what was fetched before the lock (a cloud

@@ -12,7 +12,6 @@ ROS import: the node passes its odometry pairing, its output and its logger in.
 from __future__ import annotations
 
 import importlib
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -203,8 +202,6 @@ class Stages:
         hint = self._hint() if self._hint is not None else None
         result, detector = self._shared.verify(keyframe.proposal, hint)
         self.timings.add('verify', result.times.verify)
-        if math.isfinite(result.times.step):  # registered steps are on
-            self.timings.add('step', result.times.step)
         self._hand_on(Verified(result, keyframe.odom, keyframe.proposal, detector))
 
     def _verify_failed(self, err: Exception) -> None:

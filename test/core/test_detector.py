@@ -415,3 +415,30 @@ def test_a_keyframe_is_registered_to_the_previous_one_from_the_odometry_step(mod
     cov = np.asarray(step.covariance).reshape(6, 6)
     assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov) > 0)
     assert res.times.step > 0.0 and not res.loops  # a step is never published as a loop
+
+
+def test_the_step_can_come_after_the_loops() -> None:
+    """verify(step=False) then with_step (the node publishes the loops between) gives the
+    step that verify() gives in one call."""
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    from solid_ros.core.geometry import matrix_to_vector
+    from solid_ros.sim.drive import Drive, DriveConfig
+
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
+    scans = [drive.scan(i) for i in (10, 11)]
+    cfg = SolidConfig(verify_voxel_size=0.5, verify_coarse_voxel_size=1.5,
+                      backend_step_registration='on')
+    whole, split = LoopDetector(cfg), LoopDetector(cfg)
+    for k, scan in enumerate(scans):
+        pose = matrix_to_vector(scan.pose)
+        one = whole.process(scan.points, (k + 1) * SEC, pose)
+        proposal = split.propose(scan.points, (k + 1) * SEC, pose)
+        assert proposal is not None
+        first = split.verify(proposal, step=False)
+        assert first.step is None and math.isnan(first.times.step)
+        both = split.with_step(first, proposal)
+        assert (both.step is None) == (one.step is None) == (k == 0)
+        if k:
+            assert both.step is not None and one.step is not None
+            np.testing.assert_allclose(both.step.matrix(), one.step.matrix(), atol=1e-9)
+            assert both.times.step > 0.0 and both.loops == first.loops
