@@ -67,6 +67,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -92,7 +93,9 @@ from solid_ros.core.odometry import OdometryPath, disagreement
 from solid_ros.core.proposals import (
     GraphHint,
     heading_tolerance_deg,
+    knows_place,
     near_keyframes,
+    position_sigma,
     view_keyframes,
 )
 from solid_ros.core.reasons import Reason
@@ -190,7 +193,9 @@ class _Hit:
     frames, the first start of the coarse registration (None: the graph has none); ``near``:
     among the keyframes near the query in the graph's estimate (verified first); ``view``:
     among those whose view centre lies near the query's (verified next);
-    ``heading_tol_deg``: how far a loop the graph proposed may turn from the guess."""
+    ``heading_tol_deg``: how far a loop the graph proposed may turn from the guess;
+    ``sigma_m``: the query's position sigma in the graph, its view centre as the lever (for
+    :func:`~solid_ros.core.proposals.knows_place`)."""
 
     match: Match
     margin: float
@@ -200,6 +205,7 @@ class _Hit:
     near: bool = False
     heading_tol_deg: float = 180.0
     view: bool = False
+    sigma_m: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -625,14 +631,16 @@ class LoopDetector:
         odom = vector_to_matrix(proposal.pose)
         near = near_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, cfg)
         close = {c.index for c in near}
-        seen = []
+        seen, sigma = [], math.inf
+        step = np.linalg.solve(hint.odom[-1], odom)
         if len(proposal.cloud_points):
             centre = self._view_centre(proposal.cloud_points)
             seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, centre,
                                   _extent(proposal.cloud_points), self._views, cfg,
                                   sorted(close))
+            sigma = position_sigma(hint.covariance, cfg, step, centre)
         viewed = {c.index for c in seen}
-        tol = heading_tolerance_deg(hint.covariance, cfg, np.linalg.solve(hint.odom[-1], odom))
+        tol = heading_tolerance_deg(hint.covariance, cfg, step)
         predicted = hint.predict(odom)
         hits = []
         for h in proposal.hits:
@@ -642,7 +650,8 @@ class LoopDetector:
                 if (np.linalg.norm(T[:3, 3]) <= cfg.graph_candidate_max_radius_m
                         or h.match.index in viewed):
                     h = replace(h, guess=self._level_pose(T), near=h.match.index in close,
-                                view=h.match.index in viewed)
+                                view=h.match.index in viewed, heading_tol_deg=tol,
+                                sigma_m=sigma)
             hits.append(h)
         own = {h.match.index for h in hits if h.match.session == cfg.session_id}
         for c, is_near in [(c, True) for c in near] + [(c, False) for c in seen]:
@@ -653,7 +662,7 @@ class LoopDetector:
                 proposal.r_solid, db.r_solid(seq))
             match = Match(seq, c.index, cfg.session_id, c.stamp_ns, distance)
             hits.append(_Hit(match, math.nan, db.heading(seq).copy(), 'graph',
-                             self._level_pose(c.T_mq), is_near, tol, not is_near))
+                             self._level_pose(c.T_mq), is_near, tol, not is_near, sigma))
         return hits
 
     def _view_centre(self, cloud: FloatArray) -> FloatArray:
@@ -788,13 +797,17 @@ class LoopDetector:
             else:
                 coarse.append((i, c))
         coarse.sort(key=lambda ic: -ic[1].coarse_overlap)
+        centre = query.points[:, :3].mean(axis=0) if len(query.points) else np.zeros(3)
         for i, c in coarse:
             hit = proposal.hits[i]
             if len(verified) >= cfg.max_candidates:
                 break  # enough distinct places: the rest stay unverified ('skipped')
             if any(_same_place(hit.match, v, cfg.margin_neighbourhood) for v in verified):
                 continue
-            fine = verifier.fine(query, c)
+            place = None if hit.guess is None else partial(
+                knows_place, hit.guess, centre=centre, sigma_m=hit.sigma_m,
+                heading_tol_deg=hit.heading_tol_deg, config=cfg)
+            fine = verifier.fine(query, c, place=place)
             if fine.verified and (self._odometry_refuses(proposal, hit.match,
                                                          self._unlevel(fine.T))
                                   or _turned_from_guess(hit, fine.T)):

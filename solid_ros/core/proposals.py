@@ -69,7 +69,8 @@ if TYPE_CHECKING:
     from solid_ros.core.graphtypes import Keyframe
 
 __all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'heading_tolerance_deg',
-           'near_keyframes', 'search_radius', 'view_keyframes']
+           'knows_place', 'near_keyframes', 'position_sigma', 'search_radius',
+           'view_keyframes']
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -164,6 +165,34 @@ class GraphCandidate:
     T_mq: FloatArray
 
 
+def position_sigma(covariance: npt.ArrayLike | None, config: SolidConfig,
+                   step: npt.ArrayLike | None = None,
+                   view: npt.ArrayLike | None = None) -> float:
+    """Standard deviation of the query's predicted position, metres (see the module
+    docstring); ``math.inf`` without a usable covariance.
+
+    Args:
+        covariance: 6x6 marginal covariance (ROS order) of the newest keyframe's pose.
+        config: the back end's odometry model.
+        step: 4x4 odometry step from the newest keyframe to the query (None: none).
+        view: a point in the query's sensor frame (its view centre): the heading uncertainty
+            then acts on its offset from the newest keyframe instead of the sensor's.
+    """
+    if covariance is None:
+        return math.inf
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape != (6, 6) or not bool(np.all(np.isfinite(cov))):
+        return math.inf
+    var = _largest(cov[:3, :3])
+    T = np.eye(4) if step is None else np.asarray(step, dtype=np.float64)
+    if step is not None:
+        var += _largest(model_covariance(T, config)[:3, :3])
+    if step is not None or view is not None:
+        lever = T[:3, 3] if view is None else T[:3, :3] @ np.asarray(view, np.float64) + T[:3, 3]
+        var += float(lever @ lever) * _largest(cov[3:, 3:])
+    return math.sqrt(var)
+
+
 def search_radius(covariance: npt.ArrayLike | None, config: SolidConfig,
                   step: npt.ArrayLike | None = None, view: npt.ArrayLike | None = None,
                   floor: float = 0.0) -> float:
@@ -178,19 +207,9 @@ def search_radius(covariance: npt.ArrayLike | None, config: SolidConfig,
         floor: radius when certain, if larger than ``graph_candidate_radius_m``.
     """
     cap = config.graph_candidate_max_radius_m
-    if covariance is None:
+    sigma = position_sigma(covariance, config, step, view)
+    if not math.isfinite(sigma):
         return cap
-    cov = np.asarray(covariance, dtype=np.float64)
-    if cov.shape != (6, 6) or not bool(np.all(np.isfinite(cov))):
-        return cap
-    var = _largest(cov[:3, :3])
-    T = np.eye(4) if step is None else np.asarray(step, dtype=np.float64)
-    if step is not None:
-        var += _largest(model_covariance(T, config)[:3, :3])
-    if step is not None or view is not None:
-        lever = T[:3, 3] if view is None else T[:3, :3] @ np.asarray(view, np.float64) + T[:3, 3]
-        var += float(lever @ lever) * _largest(cov[3:, 3:])
-    sigma = math.sqrt(var)
     return min(cap, max(config.graph_candidate_radius_m, floor)
                + config.graph_candidate_sigmas * sigma)
 
@@ -212,6 +231,30 @@ def heading_tolerance_deg(covariance: npt.ArrayLike | None, config: SolidConfig,
                    0.0)
     return min(180.0, HEADING_FLOOR_DEG
                + config.graph_candidate_sigmas * math.degrees(math.sqrt(var)))
+
+
+def knows_place(guess: npt.ArrayLike, T_mq: npt.ArrayLike, centre: npt.ArrayLike,
+                sigma_m: float, heading_tol_deg: float, config: SolidConfig) -> bool:
+    """Whether the graph's guess pins a loop to one object (see the module docstring).
+
+    Args:
+        guess: the graph's 4x4 ``T_mq`` (levelled frames).
+        T_mq: the registered 4x4 ``T_mq`` (same frames).
+        centre: the query's view centre in its (levelled) frame, 3-vector.
+        sigma_m: the query's position sigma with that centre as the lever
+            (:func:`position_sigma`; ``math.inf``: unknown).
+        heading_tol_deg: :func:`heading_tolerance_deg`.
+        config: ``graph_candidate_sigmas`` and ``verify_coarse_voxel_size``.
+    """
+    if not math.isfinite(sigma_m):
+        return False
+    G, T = np.asarray(guess, dtype=np.float64), np.asarray(T_mq, dtype=np.float64)
+    c = np.asarray(centre, dtype=np.float64).reshape(3)
+    deviation = float(np.linalg.norm((T[:3, :3] - G[:3, :3]) @ c + T[:3, 3] - G[:3, 3]))
+    diff = np.linalg.solve(G, T)
+    turn = math.degrees(abs(math.atan2(diff[1, 0], diff[0, 0])))
+    return (deviation + config.graph_candidate_sigmas * sigma_m
+            <= config.verify_coarse_voxel_size and turn <= heading_tol_deg)
 
 
 def _largest(block: FloatArray) -> float:

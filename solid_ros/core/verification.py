@@ -41,6 +41,9 @@ rejection ``reason``):
    ``verify_min_spread``. One generic object (a building corner, a wall end) matches any other
    like it, so such a loop must also clear a stricter bar: structure overlap at least
    ``verify_single_object_overlap`` and conflict at most half of ``verify_max_conflict``.
+   Skipped where the place is known: a registered step, or a loop that puts the query's view
+   where the pose graph predicted it within one coarse voxel (:mod:`solid_ros.core.proposals`,
+   known place).
 10. ``unstable``: consistency check. The fine stage is restarted from the solution moved one
    fine voxel along the least constrained horizontal direction and turned 2 degrees, both
    ways (within the fine stage's reach of two voxels); a
@@ -71,7 +74,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -235,10 +238,13 @@ class Verifier:
                 'coarse_overlap', al.T_qm, coarse_overlap=al.coarse_overlap))
         return CoarseResult(key, src, al, None)
 
-    def fine(self, query: Query, coarse: CoarseResult, step: bool = False) -> Verification:
+    def fine(self, query: Query, coarse: CoarseResult, step: bool = False,
+             place: Callable[[FloatArray], bool] | None = None) -> Verification:
         """Fine stage and tests 4-10 of a candidate that passed :meth:`coarse`; a ``step``
         (two consecutive keyframes, started from the odometry) skips test 9: whether one
-        object matched another like it is a question of place, and the place is known."""
+        object matched another like it is a question of place, and the place is known. So
+        does a pose ``T_mq`` for which ``place`` holds (the pose graph predicted that object,
+        :func:`solid_ros.core.proposals.knows_place`)."""
         if coarse.rejection is not None:
             return coarse.rejection
         assert coarse.source is not None and coarse.alignment is not None
@@ -265,7 +271,8 @@ class Verifier:
         scores['spread'] = sup.spread
         if not (step or sup.spread >= cfg.verify_min_spread
                 or (sup.overlap >= cfg.verify_single_object_overlap
-                    and sup.conflict <= cfg.verify_max_conflict / 2.0)):
+                    and sup.conflict <= cfg.verify_max_conflict / 2.0)
+                or (place is not None and place(_inv(T_qm)))):
             return _rejected('single_object', T_qm, **scores)
         drift_m, drift_deg = self._drift(query, src, T_qm, sup.information)
         scores.update(drift_m=drift_m, drift_deg=drift_deg)

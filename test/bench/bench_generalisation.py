@@ -42,7 +42,9 @@ Usage: ``python test/bench/bench_generalisation.py [--sensors hdl64,avia_like]
 cases, about 15,500 scans, each a keyframe) takes about 11 minutes of CPU (about 6 minutes
 with ``--jobs 2``) on an idle machine: simulating a 64-beam scan costs about 20 ms, describing and
 verifying a keyframe 20-50 ms. ``--dump`` writes every candidate looked at, with its test
-scores and pose error, one CSV per case. Exit status 1 when a case falls short of the goal.
+scores and pose error, one CSV per case, and each keyframe's reference pose with whether it
+revisits a place and got a correct loop (``*.keyframes.csv``). Exit status 1 when a case
+falls short of the goal.
 """
 
 from __future__ import annotations
@@ -212,6 +214,7 @@ class Outcome:
     rows: list[dict[str, Any]]
     verify_ms: list[float] = field(default_factory=list)
     odometry: str = 'reference'
+    keyframes_rows: list[dict[str, Any]] = field(default_factory=list)
 
 
 def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None,
@@ -243,7 +246,24 @@ def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None,
     seconds = time.perf_counter() - t0
     scores, rows = score_case(case, cfg, np.asarray(poses), attempts, published)
     return Outcome(case, len(poses), scores, dict(det.reasons), seconds, rows, verify_ms,
-                   odometry)
+                   odometry, keyframe_rows(case, np.asarray(poses), rows))
+
+
+def keyframe_rows(case: Case, ref: np.ndarray, rows: list[dict[str, Any]]
+                  ) -> list[dict[str, Any]]:
+    """Each keyframe's reference pose, whether it revisits a place and whether it got a
+    correct published loop: with the candidates' rows, what tells a miss with no candidate
+    near the true place from one a test rejected."""
+    if not len(ref):
+        return []
+    revisiting = revisits(ref[:, :3, 3], radius=case.revisit_radius,
+                          min_path_m=case.revisit_path_m, rotations=ref[:, :3, :3],
+                          max_heading_deg=case.max_heading_deg)
+    found = {r['query'] for r in rows if r['published'] and r['correct']}
+    return [{'index': k, 'x': float(p[0, 3]), 'y': float(p[1, 3]),
+             'yaw_deg': math.degrees(math.atan2(p[1, 0], p[0, 0])),
+             'revisiting': int(revisiting[k]), 'found': int(k in found)}
+            for k, p in enumerate(ref)]
 
 
 def score_case(case: Case, cfg: SolidConfig, ref: np.ndarray,
@@ -423,7 +443,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                for k, v in misses.items())))
     if args.dump is not None:
         for o in outcomes:
-            _write_rows(args.dump / (o.case.name.replace('/', '_') + '.csv'), o.rows)
+            stem = o.case.name.replace('/', '_')
+            _write_rows(args.dump / (stem + '.csv'), o.rows)
+            _write_rows(args.dump / (stem + '.keyframes.csv'), o.keyframes_rows)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(

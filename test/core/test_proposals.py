@@ -14,7 +14,9 @@ from solid_ros.core.proposals import (
     HEADING_FLOOR_DEG,
     GraphHint,
     heading_tolerance_deg,
+    knows_place,
     near_keyframes,
+    position_sigma,
     search_radius,
     view_keyframes,
 )
@@ -263,3 +265,32 @@ def test_a_wide_view_reaches_as_far_as_its_extent() -> None:
     assert search_radius(_cov(0.0), CFG, floor=14.0) == pytest.approx(14.0)
     assert search_radius(_cov(1.0), CFG, floor=14.0) == pytest.approx(15.0)  # the cap
     assert search_radius(_cov(0.0), CFG, floor=2.0) == pytest.approx(5.0)  # the usual floor
+
+
+def test_position_sigma_is_what_the_search_radius_grows_with() -> None:
+    cov = _cov(0.2)
+    cov[3:, 3:] = np.eye(3) * 0.002 ** 2
+    step, view = _pose(3.0), np.array([20.0, 0.0, 0.0])
+    sigma = position_sigma(cov, CFG, step, view)
+    assert sigma > 0.2  # the step and the heading's lever add to the marginal
+    assert search_radius(cov, CFG, step, view) == pytest.approx(5.0 + 3.0 * sigma)
+    assert position_sigma(None, CFG) == math.inf
+    assert position_sigma(np.full((6, 6), np.nan), CFG) == math.inf
+
+
+def test_a_place_is_known_only_within_one_coarse_voxel_counting_the_graph_s_doubt() -> None:
+    cfg = CFG.replace(verify_coarse_voxel_size=1.5)
+    guess, centre = _pose(2.0, 1.0, 0.3), np.array([15.0, 0.0, 0.0])
+    assert knows_place(guess, guess, centre, 0.1, 5.0, cfg)  # 0 + 3 x 0.1 <= 1.5
+    # The deviation is measured at the view centre: 1 deg turns a point 15 m ahead by 0.26 m.
+    turned = guess @ _pose(0.0, 0.0, math.radians(1.0))
+    assert knows_place(guess, turned, centre, 0.1, 5.0, cfg)
+    assert not knows_place(guess, turned, centre, 0.1, 0.5, cfg)  # turned beyond the tolerance
+    assert knows_place(guess, guess, centre, 0.42, 5.0, cfg)  # 0 + 1.26 <= 1.5
+    assert not knows_place(guess, turned, centre, 0.42, 5.0, cfg)  # 0.26 + 1.26 > 1.5
+    shifted = guess @ _pose(1.0, 0.0)
+    assert knows_place(guess, shifted, centre, 0.1, 5.0, cfg)  # 1.0 + 0.3
+    assert not knows_place(guess, guess @ _pose(1.3, 0.0), centre, 0.1, 5.0, cfg)
+    # A graph unsure by more than a coarse voxel knows no place, however close the pose.
+    assert not knows_place(guess, guess, centre, 0.6, 5.0, cfg)
+    assert not knows_place(guess, guess, centre, math.inf, 5.0, cfg)

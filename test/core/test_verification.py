@@ -486,3 +486,36 @@ def test_free_space_conflict_counts_seen_through_points_unless_explained() -> No
     assert free_space_conflict(pts, ranges, 1.0, explained=explained) == pytest.approx(0.5)
     # Directions the sensor saw nothing in do not count at all.
     assert free_space_conflict(np.array([[0.0, 5.0, 0.0]]), ranges, 1.0) == 0.0
+
+
+def _corner(rng: np.random.Generator, n: int = 6000) -> FloatArray:
+    """Ground and one building corner (two walls meeting at (12, 4)): a single object."""
+    ground = np.c_[rng.uniform(2, 30, (n, 1)), rng.uniform(-12, 12, (n, 1)), np.full(n, -1.7)]
+    u, z = rng.uniform(0, 8, n), rng.uniform(-1.7, 4.0, n)
+    wall_a = np.c_[np.full(n // 2, 12.0), 4.0 - u[: n // 2], z[: n // 2]]
+    wall_b = np.c_[12.0 + u[n // 2:], np.full(n - n // 2, 4.0), z[n // 2:]]
+    return np.vstack([ground, wall_a, wall_b])
+
+
+def test_a_single_object_passes_only_where_the_graph_predicted_it() -> None:
+    # One building corner pins the pose down by itself but would match any corner like it:
+    # refused as a single object, unless the pose graph predicted that very object.
+    cfg = CFG.replace(fov_up_deg=30.0, fov_down_deg=-30.0, verify_single_object_overlap=1.0)
+    rng = np.random.default_rng(5)
+    pts = _corner(rng)
+    v = Verifier(cfg)
+    query = v.prepare(_cloud(pts, cfg))
+    match = v.prepare(_cloud(pts + [0.4, -0.3, 0.0], cfg)).keyframe_cloud()
+    seen: list[FloatArray] = []
+
+    def predicted(T_mq: FloatArray) -> bool:
+        seen.append(T_mq)
+        return True
+
+    coarse = v.coarse(query, 'm', match, [0.0])
+    assert v.fine(query, coarse).reason == 'single_object'
+    assert v.fine(query, coarse, place=lambda T: False).reason == 'single_object'
+    res = v.fine(query, coarse, place=predicted)
+    assert res.reason != 'single_object' and res.spread < cfg.verify_min_spread
+    # The place is asked about the registered pose T_mq (query -> match): here +0.4, -0.3.
+    assert len(seen) == 1 and np.allclose(seen[0][:2, 3], [0.4, -0.3], atol=0.1)
