@@ -289,8 +289,9 @@ class SolidConfig(_Schema):
                                              low=0.0, high=1.0)
     verify_max_drift: float = _p(0.2, 'Consistency: restarts one voxel off must return within '
                                  'this, metres', low=0.0, high=100.0)
-    verify_max_drift_deg: float = _p(1.0, 'Consistency: restarts 2 deg off must return within '
-                                     'this, degrees', low=0.0, high=180.0)
+    verify_max_drift_deg: float = _p(1.0, 'Consistency: restarts turned 2 deg (less where the '
+                                     'far points would move over a voxel) must return within '
+                                     'this per 2 deg of turn, degrees', low=0.0, high=180.0)
     verify_covariance_scale: float = _p(1.0, 'Factor on the published loop covariance (1 = the '
                                         'calibrated model; raise it for errors the loops do '
                                         'not see, e.g. a reference or odometry frame that is '

@@ -45,10 +45,14 @@ rejection ``reason``):
    where the pose graph predicted it within one coarse voxel (:mod:`solid_ros.core.proposals`,
    known place).
 10. ``unstable``: consistency check. The fine stage is restarted from the solution moved one
-   fine voxel along the least constrained horizontal direction and turned 2 degrees, both
-   ways (within the fine stage's reach of two voxels); a
-   true alignment sits in a basin and is found again, a spurious one slides away. The
-   restarts must end within ``verify_max_drift`` metres and ``verify_max_drift_deg`` degrees.
+   fine voxel along the least constrained horizontal direction and turned, both ways, by
+   2 degrees or, if less, the angle that moves the candidate's far points (the 90th
+   percentile of their horizontal range) by one fine voxel: together within the fine stage's
+   reach of two voxels. A true alignment sits in a basin and is found again, a spurious one
+   slides away. The restarts must end within ``verify_max_drift`` metres and
+   ``verify_max_drift_deg`` degrees per 2 degrees of turn (a restart that does not move
+   fails either way). A fixed 2 degrees moved the far points of a narrow view that sees
+   30 m and more out of reach, and right poses did not return.
 
 Passing all of them gives ``verified``. The detector may still refuse a verified loop that
 this session's odometry contradicts (``odometry``, see :mod:`solid_ros.core.detector`). A
@@ -101,7 +105,8 @@ FloatArray = npt.NDArray[np.float64]
 # Kept under this name for callers that list the verdicts a verification can give.
 REASONS = VERIFY_REASONS
 _PROBE_VOXELS = 1.0  # restart offset, in fine voxels (half the correspondence distance)
-_PROBE_DEG = 2.0
+_PROBE_DEG = 2.0  # largest restart turn
+_FAR_PERCENTILE = 90.0  # the far points' range that bounds the turn
 _SIGMA_FLOOR = 0.02
 _SOURCE_CACHE = 16  # prepared candidate clouds kept: consecutive queries hit the same places
 
@@ -274,9 +279,11 @@ class Verifier:
                     and sup.conflict <= cfg.verify_max_conflict / 2.0)
                 or (place is not None and place(_inv(T_qm)))):
             return _rejected('single_object', T_qm, **scores)
-        drift_m, drift_deg = self._drift(query, src, T_qm, sup.information)
+        drift_m, drift_deg, turn_deg = self._drift(query, src, T_qm, sup.information)
         scores.update(drift_m=drift_m, drift_deg=drift_deg)
-        if not (drift_m <= cfg.verify_max_drift and drift_deg <= cfg.verify_max_drift_deg):
+        # The angle bound shrinks with the turn: a restart that did not move must still fail.
+        if not (drift_m <= cfg.verify_max_drift
+                and drift_deg <= cfg.verify_max_drift_deg * turn_deg / _PROBE_DEG):
             return _rejected('unstable', T_qm, **scores)
         info, weight = sup.weighted_information
         cov = _covariance(info, sup.rmse, weight / max(sup.patches, 1),
@@ -288,20 +295,29 @@ class Verifier:
                             hypothesis=hyp, **scores)
 
     def _drift(self, query: Query, src: Source, T_qm: FloatArray,
-               info: FloatArray) -> tuple[float, float]:
-        """Largest distance and angle between ``T_qm`` and two perturbed restarts."""
+               info: FloatArray) -> tuple[float, float, float]:
+        """Largest distance and angle between ``T_qm`` and two perturbed restarts, and the
+        turn of the restarts in degrees: ``_PROBE_DEG``, less where it would move the
+        candidate's far points (90th percentile of their horizontal range from the query
+        sensor) by more than ``_PROBE_VOXELS`` fine voxels: with the shift, no point moves
+        beyond the fine stage's reach (two voxels); 2 degrees pushed the far structure of a
+        narrow view that sees 30 m and more out of it, and right poses did not return."""
         _, vecs = np.linalg.eigh(info[3:5, 3:5])
         weak = vecs[:, 0]
+        shift = _PROBE_VOXELS * self.settings.voxel
+        xy = src.points[:, :2] @ T_qm[:2, :2].T + T_qm[:2, 3]
+        far = float(np.percentile(np.linalg.norm(xy, axis=1), _FAR_PERCENTILE))
+        turn = min(math.radians(_PROBE_DEG), shift / max(far, 1e-6))
         worst_m = worst_deg = 0.0
         for sign in (1.0, -1.0):
             shake = np.eye(4)
-            shake[:3, :3] = rot_z(sign * math.radians(_PROBE_DEG))
-            shake[:2, 3] = sign * _PROBE_VOXELS * self.settings.voxel * weak
+            shake[:3, :3] = rot_z(sign * turn)
+            shake[:2, 3] = sign * shift * weak
             again = align_fine(query, src, shake @ T_qm, self.settings)
             diff = np.linalg.inv(T_qm) @ again.T_qm
             worst_m = max(worst_m, float(np.linalg.norm(diff[:3, 3])))
             worst_deg = max(worst_deg, _angle_deg(diff[:3, :3]))
-        return worst_m, worst_deg
+        return worst_m, worst_deg, math.degrees(turn)
 
 
 def _covariance(info: FloatArray, rmse: float, per_patch: float,
