@@ -66,10 +66,10 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -79,16 +79,15 @@ from solid_ros.core.database import DescriptorDatabase, Match, unit_vector
 from solid_ros.core.descriptor import Descriptor, describe, preprocess, voxel_downsample
 from solid_ros.core.errors import CloudError, ConfigError
 from solid_ros.core.geometry import (
-    matrix_to_vector,
     pose_to_vector,
     rot_z,
     rotation_deg,
-    rpy_matrix,
     vector_to_matrix,
     yaw_of,
 )
 from solid_ros.core.keyframes import CloudStore, KeyframeCloud
 from solid_ros.core.matching import cosine_distance, estimate_yaw, heading_hypotheses
+from solid_ros.core.mount import Mount
 from solid_ros.core.odometry import OdometryPath, disagreement
 from solid_ros.core.proposals import (
     GraphHint,
@@ -100,6 +99,15 @@ from solid_ros.core.proposals import (
 )
 from solid_ros.core.reasons import Reason
 from solid_ros.core.registration import Query
+from solid_ros.core.results import (
+    NAN_COV,
+    Hit,
+    LoopCandidate,
+    Proposal,
+    ScanResult,
+    Source,
+    StageTimes,
+)
 from solid_ros.core.stamps import check_stamp
 from solid_ros.core.verification import Verification, Verifier
 
@@ -107,184 +115,13 @@ __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanRes
            'Source', 'StageTimes']
 
 FloatArray = npt.NDArray[np.float64]
-_NAN_COV: tuple[float, ...] = (math.nan,) * 36
 # (robot = its session id, index, stamp_ns) of a peer's keyframe -> its cloud, or the reason
 # there is none.
 CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | Reason']
-_IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-Source = Literal['descriptor', 'graph', 'step']  # what proposed a candidate
 # A keyframe proposed by position alone has no descriptor evidence, so its alignment must be
 # better constrained: in the simulator's cluttered room one at 0.0079 (bar 0.0075) was 5 deg
 # off; hku1's correct graph loops start at 0.0076, then 0.0106.
 GRAPH_CONSTRAINT_FACTOR = 1.25
-
-
-@dataclass(frozen=True)
-class LoopCandidate:
-    """A loop between the current scan and a stored one, published or only attempted.
-
-    Attributes:
-        query_index: index of the query scan among this session's keyframes.
-        match_index: index of the matched scan within its session.
-        query_stamp_ns: stamp of the query scan, integer nanoseconds.
-        match_stamp_ns: stamp of the matched scan, integer nanoseconds.
-        match_session: session id of the matched scan.
-        distance: cosine distance of the R-SOLiD pair, in [0, 2].
-        yaw: heading of the query relative to the match, radians in (-pi, pi], about the
-            level +z: p_match = Rz(yaw) p_query. From the verified pose when ``verified``,
-            else from A-SOLiD.
-        margin: distance of the next-best distinct place minus ``distance``; ``math.inf``
-            when there is none.
-        verified: registration verified the loop (``reason == 'verified'``).
-        pose: ``T`` = pose of the query sensor in the match sensor's frame, ``p_match = T
-            p_query``, as ``(tx, ty, tz, qx, qy, qz, qw)``; without verification only the
-            descriptor's yaw (no translation).
-        fitness: fraction of the match's cloud points supporting the alignment (NaN when no
-            registration ran).
-        rmse: RMS point-to-plane distance of the supporting points, metres.
-        covariance: 6x6 row-major covariance of ``T`` (ROS order x, y, z, roll, pitch, yaw;
-            right perturbation in the query sensor frame); NaN unless verified.
-        reason: ``'verified'``, ``'descriptor'`` (accepted without verification), the
-            verification test that rejected it, or ``'odometry'`` (this session's odometry
-            contradicts it).
-        overlap: structure overlap of the alignment (NaN when no fine registration ran).
-        conflict: free-space conflict of the alignment (NaN: not measured).
-        constraint: horizontal constraint per structure point (NaN: not measured).
-        spread: the constraint without the strongest object (NaN: not measured).
-        source: what proposed it: ``'descriptor'`` (the descriptor's nearest places) or
-            ``'graph'`` (a keyframe near the query in the back end's estimate, see
-            :mod:`solid_ros.core.proposals`; its ``margin`` is NaN), or ``'step'`` (the
-            previous keyframe, :attr:`ScanResult.step`; never published).
-    """
-
-    query_index: int
-    match_index: int
-    query_stamp_ns: int
-    match_stamp_ns: int
-    match_session: int
-    distance: float
-    yaw: float
-    margin: float
-    verified: bool = False
-    pose: tuple[float, ...] = _IDENTITY_POSE
-    fitness: float = math.nan
-    rmse: float = math.nan
-    covariance: tuple[float, ...] = _NAN_COV
-    reason: Reason = 'descriptor'
-    overlap: float = math.nan
-    conflict: float = math.nan
-    constraint: float = math.nan
-    spread: float = math.nan
-    source: Source = 'descriptor'
-
-    def to_dict(self) -> dict[str, Any]:
-        """Return the fields as a plain dict."""
-        return asdict(self)
-
-    def matrix(self) -> FloatArray:
-        """``T`` as a 4x4 matrix."""
-        return vector_to_matrix(self.pose)
-
-
-@dataclass(frozen=True)
-class _Hit:
-    """A candidate to verify: the descriptor's (from :meth:`LoopDetector.propose`) or the
-    pose graph's (added by ``verify``); ``guess`` is the graph's ``T_mq`` in the levelled
-    frames, the first start of the coarse registration (None: the graph has none); ``near``:
-    among the keyframes near the query in the graph's estimate (verified first); ``view``:
-    among those whose view centre lies near the query's (verified next);
-    ``heading_tol_deg``: how far a loop the graph proposed may turn from the guess;
-    ``sigma_m``: the query's position sigma in the graph, its view centre as the lever (for
-    :func:`~solid_ros.core.proposals.knows_place`)."""
-
-    match: Match
-    margin: float
-    heading: npt.NDArray[np.float32]
-    source: Source = 'descriptor'
-    guess: FloatArray | None = None
-    near: bool = False
-    heading_tol_deg: float = 180.0
-    view: bool = False
-    sigma_m: float = math.inf
-
-
-@dataclass(frozen=True)
-class StageTimes:
-    """Milliseconds per stage of one keyframe (NaN: the stage did not run)."""
-
-    describe: float = math.nan
-    search: float = math.nan
-    verify: float = math.nan
-    step: float = math.nan
-
-
-@dataclass(frozen=True)
-class ScanResult:
-    """What one scan gave; :meth:`LoopDetector.process` and :meth:`LoopDetector.verify`
-    return it.
-
-    Attributes:
-        stamp_ns: the scan's stamp, integer nanoseconds.
-        keyframe: the scan was kept (described, stored and queried); False: gated out.
-        query_index: its index among this session's keyframes (-1 when gated out).
-        pose: the odometry pose vector ``(x, y, z, qx, qy, qz, qw)`` it came with, if any.
-        loops: loops to publish, best first.
-        attempts: every candidate looked at, published or not, with its reason.
-        best: the nearest stored scan by descriptor, accepted or not (None when none was
-            eligible); offline PR curves need it.
-        times: milliseconds per stage.
-        descriptor: its descriptor (None when gated out or given as a descriptor).
-        step: this keyframe registered to the previous one of this session, seeded by the
-            odometry step and verified by the loops' tests (``backend_step_registration``
-            'on'; source ``'step'``, never published as a loop), or None.
-    """
-
-    stamp_ns: int
-    keyframe: bool = False
-    query_index: int = -1
-    pose: FloatArray | None = None
-    loops: tuple[LoopCandidate, ...] = ()
-    attempts: tuple[LoopCandidate, ...] = ()
-    best: LoopCandidate | None = None
-    times: StageTimes = StageTimes()
-    descriptor: Descriptor | None = None
-    step: LoopCandidate | None = None
-
-
-@dataclass
-class Proposal:
-    """What :meth:`LoopDetector.propose` found for one keyframe, for :meth:`verify`.
-
-    Attributes:
-        query_index: index of the keyframe in this session.
-        stamp_ns: its stamp.
-        seq: its database sequence number.
-        heading: its heading signature.
-        r_solid: its R-SOLiD (shared with peer robots).
-        pose: its pose vector ``(x, y, z, qx, qy, qz, qw)``, when known.
-        cloud_points: its keyframe cloud points (levelled, gated, clipped, voxelised), or
-            None without verification.
-        hits: descriptor candidates, nearest first.
-        best: the nearest stored scan by descriptor, accepted or not.
-        descriptor: its descriptor (None when given as a descriptor).
-        describe_ms: time spent levelling and describing, milliseconds.
-        search_ms: time spent searching and storing the descriptor, milliseconds.
-        query: its cloud prepared for registration (set by :meth:`LoopDetector.verify`).
-    """
-
-    query_index: int
-    stamp_ns: int
-    seq: int
-    heading: FloatArray
-    cloud_points: FloatArray | None
-    r_solid: FloatArray | None = None
-    pose: FloatArray | None = None
-    hits: list[_Hit] = field(default_factory=list)
-    best: LoopCandidate | None = None
-    descriptor: Descriptor | None = None
-    describe_ms: float = math.nan
-    search_ms: float = math.nan
-    query: Query | None = None
 
 
 class LoopDetector:
@@ -307,10 +144,7 @@ class LoopDetector:
         self.clouds = clouds if clouds is not None else CloudStore(
             cfg.cloud_capacity, int(cfg.cloud_memory_mb * 1e6))
         self.verifier = Verifier(cfg) if cfg.verify else None
-        self._mount = rpy_matrix(math.radians(cfg.mount_roll_deg),
-                                 math.radians(cfg.mount_pitch_deg),
-                                 math.radians(cfg.mount_yaw_deg))
-        self._levelled = not np.allclose(self._mount, np.eye(3))
+        self._mount = Mount(cfg)
         # The descriptor's gate without the voxel grid (replace() costs about 0.5 ms).
         self._gate_cfg = cfg.replace(voxel_size=0.0)
         self.reasons: Counter[str] = Counter()  # verification outcomes so far
@@ -428,10 +262,10 @@ class LoopDetector:
         stamp = check_stamp(stamp_ns)
         vec = pose_to_vector(pose) if pose is not None else None
         if not self.is_keyframe(stamp, vec):
-            self._check_usable(self._level(points))  # refused alike, kept or not
+            self._check_usable(self._mount.level(points))  # refused alike, kept or not
             return None
         t0 = time.perf_counter()
-        pts = self._level(points)
+        pts = self._mount.level(points)
         desc = describe(pts, self._config)
         if desc.num_points == 0:  # every point dropped: the R-SOLiD is all zero
             raise CloudError(_unusable(np.shape(pts), self._config))
@@ -458,15 +292,6 @@ class LoopDetector:
         if not unit_vector(desc.r_solid)[1]:
             raise CloudError('no usable point: the R-SOLiD is all zero or not finite')
         return self.verify(self._propose_descriptor(desc, stamp, vec, None))
-
-    def _level(self, points: npt.ArrayLike) -> npt.ArrayLike:
-        if not self._levelled:
-            return points
-        arr = np.asarray(points)
-        if arr.ndim != 2 or arr.shape[1] < 3:
-            return arr  # describe() reports the shape error
-        out: FloatArray = arr[:, :3].astype(np.float64) @ self._mount.T
-        return out
 
     def _check_usable(self, points: npt.ArrayLike) -> None:
         """Raise CloudError unless a point survives the range gate, FOV and max_distance.
@@ -521,7 +346,7 @@ class LoopDetector:
             margin = margin_of(hit)
             if cfg.min_margin > 0.0 and margin < cfg.min_margin:
                 continue
-            chosen.append(_Hit(hit, margin, db.heading(hit.seq).copy()))
+            chosen.append(Hit(hit, margin, db.heading(hit.seq).copy()))
         seq = db.next_seq
         db.add(desc.r_solid, desc.heading, stamp, vec)
         self._own_seqs[q_index] = seq
@@ -612,16 +437,16 @@ class LoopDetector:
         step = np.linalg.solve(vector_to_matrix(pose_prev), vector_to_matrix(proposal.pose))
         key = (self._config.session_id, seq)
         fine = self.verifier.fine(query, self.verifier.coarse(
-            query, key, cloud, [], (self._level_pose(np.asarray(step, dtype=np.float64)),)),
+            query, key, cloud, [], (self._mount.level_pose(np.asarray(step, dtype=np.float64)),)),
             step=True)
         if not fine.verified:
             return None
         _, _, stamp = self.database.match_info(seq)
-        hit = _Hit(Match(seq, prev, self._config.session_id, stamp, math.nan), math.nan,
+        hit = Hit(Match(seq, prev, self._config.session_id, stamp, math.nan), math.nan,
                    np.zeros(0, dtype=np.float32), 'step')
         return self._candidate(proposal, hit, 0.0, fine)
 
-    def _with_graph_hits(self, proposal: Proposal, hint: GraphHint) -> list[_Hit]:
+    def _with_graph_hits(self, proposal: Proposal, hint: GraphHint) -> list[Hit]:
         """The proposal's hits with the graph's guesses, then the keyframes near the query
         that the descriptor did not propose (see :meth:`verify`)."""
         cfg, db = self._config, self.database
@@ -649,7 +474,7 @@ class LoopDetector:
                 T = np.asarray(np.linalg.solve(pose_m, predicted), dtype=np.float64)
                 if (np.linalg.norm(T[:3, 3]) <= cfg.graph_candidate_max_radius_m
                         or h.match.index in viewed):
-                    h = replace(h, guess=self._level_pose(T), near=h.match.index in close,
+                    h = replace(h, guess=self._mount.level_pose(T), near=h.match.index in close,
                                 view=h.match.index in viewed, heading_tol_deg=tol,
                                 sigma_m=sigma)
             hits.append(h)
@@ -661,17 +486,16 @@ class LoopDetector:
             distance = math.nan if proposal.r_solid is None else cosine_distance(
                 proposal.r_solid, db.r_solid(seq))
             match = Match(seq, c.index, cfg.session_id, c.stamp_ns, distance)
-            hits.append(_Hit(match, math.nan, db.heading(seq).copy(), 'graph',
-                             self._level_pose(c.T_mq), is_near, tol, not is_near, sigma))
+            hits.append(Hit(match, math.nan, db.heading(seq).copy(), 'graph',
+                             self._mount.level_pose(c.T_mq), is_near, tol, not is_near, sigma))
         return hits
 
     def _view_centre(self, cloud: FloatArray) -> FloatArray:
         """Centroid of a keyframe cloud (levelled frame) in the sensor frame."""
         centre = np.asarray(cloud, dtype=np.float64)[:, :3].mean(axis=0)
-        out: FloatArray = self._mount.T @ centre if self._levelled else centre
-        return out
+        return self._mount.to_sensor(centre)
 
-    def _candidate(self, proposal: Proposal, hit: _Hit, yaw: float,
+    def _candidate(self, proposal: Proposal, hit: Hit, yaw: float,
                    result: Verification | None) -> LoopCandidate:
         m = hit.match
         if result is None:
@@ -679,17 +503,17 @@ class LoopDetector:
             T[:3, :3] = rot_z(yaw)
             return LoopCandidate(proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns,
                                  m.session, m.distance, yaw, hit.margin,
-                                 pose=self._unlevel_pose(T), source=hit.source)
-        cov: tuple[float, ...] = _NAN_COV
+                                 pose=self._mount.unlevel_pose(T), source=hit.source)
+        cov: tuple[float, ...] = NAN_COV
         if result.covariance is not None:
-            cov = tuple(float(v) for v in self._unlevel_cov(result.covariance).ravel())
+            cov = tuple(float(v) for v in self._mount.unlevel_cov(result.covariance).ravel())
         return LoopCandidate(
             proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns, m.session,
             m.distance, result.yaw if result.verified else yaw, hit.margin,
-            verified=result.verified, pose=self._unlevel_pose(result.T), fitness=result.fitness,
-            rmse=result.rmse, covariance=cov, reason=result.reason, overlap=result.overlap,
-            conflict=result.conflict, constraint=result.constraint, spread=result.spread,
-            source=hit.source)
+            verified=result.verified, pose=self._mount.unlevel_pose(result.T),
+            fitness=result.fitness, rmse=result.rmse, covariance=cov, reason=result.reason,
+            overlap=result.overlap, conflict=result.conflict, constraint=result.constraint,
+            spread=result.spread, source=hit.source)
 
     def _odometry_refuses(self, proposal: Proposal, match: Match, T_mq: FloatArray) -> bool:
         """Whether this session's odometry contradicts the loop ``T_mq`` (sensor frames, not
@@ -809,7 +633,7 @@ class LoopDetector:
                 heading_tol_deg=hit.heading_tol_deg, config=cfg)
             fine = verifier.fine(query, c, place=place)
             if fine.verified and (self._odometry_refuses(proposal, hit.match,
-                                                         self._unlevel(fine.T))
+                                                         self._mount.unlevel(fine.T))
                                   or _turned_from_guess(hit, fine.T)):
                 fine = replace(fine, verified=False, reason='odometry', covariance=None)
             elif (fine.verified and hit.source == 'graph'
@@ -822,34 +646,6 @@ class LoopDetector:
     def _loaded_sessions(self) -> set[int]:
         """Sessions loaded from a database file (their clouds came with it or not at all)."""
         return self._loaded
-
-    def _unlevel(self, T: FloatArray) -> FloatArray:
-        """A pose between levelled frames, expressed between the sensor frames."""
-        return self._remount(T, inverse=True)
-
-    def _level_pose(self, T: FloatArray) -> FloatArray:
-        """A pose between the sensor frames, expressed between the levelled frames."""
-        return self._remount(T, inverse=False)
-
-    def _remount(self, T: FloatArray, inverse: bool) -> FloatArray:
-        """``M T M^-1`` with ``M`` the mount rotation (its inverse when ``inverse``)."""
-        if not self._levelled:
-            return T
-        m = np.eye(4)
-        m[:3, :3] = self._mount.T if inverse else self._mount
-        out: FloatArray = m @ T @ m.T
-        return out
-
-    def _unlevel_pose(self, T: FloatArray) -> tuple[float, ...]:
-        return tuple(float(v) for v in matrix_to_vector(self._unlevel(T)))
-
-    def _unlevel_cov(self, cov: FloatArray) -> FloatArray:
-        if not self._levelled:
-            return cov
-        b = np.zeros((6, 6))
-        b[:3, :3] = b[3:, 3:] = self._mount.T
-        out: FloatArray = b @ cov @ b.T
-        return out
 
     # -------------------------------------------------------------------------- peer robots
 
@@ -941,7 +737,7 @@ def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
             f'and max_distance ({cfg.max_distance:g} m)')
 
 
-def _turned_from_guess(hit: _Hit, T_mq: FloatArray) -> bool:
+def _turned_from_guess(hit: Hit, T_mq: FloatArray) -> bool:
     """Whether a loop the graph proposed turns from the graph's relative heading by more
     than the hit's tolerance (levelled frames; see :mod:`solid_ros.core.proposals`)."""
     if hit.source != 'graph' or hit.guess is None:

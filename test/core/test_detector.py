@@ -374,19 +374,6 @@ def test_each_scan_returns_one_result_and_the_detector_keeps_none() -> None:
     assert not any(name.startswith('last_') for name in vars(det))  # no per-scan state
 
 
-def test_levelling_a_pose_and_back_is_the_identity() -> None:
-    """The graph's guess goes into the levelled frames, the loop comes back out of them."""
-    from solid_ros.core.geometry import rpy_matrix
-
-    det = LoopDetector(SolidConfig(mount_roll_deg=-5.0, mount_pitch_deg=8.0))
-    T = np.eye(4)
-    T[:3, :3] = rpy_matrix(0.1, -0.2, 1.0)
-    T[:3, 3] = [3.0, -1.0, 0.5]
-    level = det._level_pose(T)
-    assert not np.allclose(level, T)
-    np.testing.assert_allclose(det._unlevel(level), T, atol=1e-12)
-
-
 @pytest.mark.parametrize('mode', ['on', 'off', 'auto'])
 def test_a_keyframe_is_registered_to_the_previous_one_from_the_odometry_step(mode: str) -> None:
     pytest.importorskip('small_gicp', reason='small-gicp is not installed')

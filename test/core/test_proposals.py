@@ -169,11 +169,12 @@ def test_heading_tolerance_follows_the_yaw_uncertainty() -> None:
 def test_a_loop_the_graph_proposed_may_not_turn_from_its_guess() -> None:
     """In a symmetric room the registration can fit the place turned by 180 degrees."""
     from solid_ros.core.database import Match
-    from solid_ros.core.detector import _Hit, _turned_from_guess
+    from solid_ros.core.detector import _turned_from_guess
+    from solid_ros.core.results import Hit
 
     guess = np.eye(4)
     guess[:3, :3] = rot_z(math.radians(30.0))
-    hit = _Hit(Match(0, 0, 0, 0, 0.5), math.nan, np.zeros(60, np.float32), 'graph', guess,
+    hit = Hit(Match(0, 0, 0, 0, 0.5), math.nan, np.zeros(60, np.float32), 'graph', guess,
                True, 10.0)
     near, flipped = guess.copy(), guess.copy()
     near[:3, :3] = rot_z(math.radians(38.0))
