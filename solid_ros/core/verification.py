@@ -320,7 +320,7 @@ class Verifier:
         """A better pose the fine stage finds from ``T_qm`` moved ``_FAR_VOXELS`` fine voxels
         either way along the least constrained horizontal direction, if any: one beyond
         ``verify_max_drift`` with at least the structure overlap and at most the conflict of
-        ``T_qm`` (the better on both, where both restarts find one)."""
+        ``T_qm`` (the one with more overlap, where both restarts find one)."""
         weak = np.linalg.eigh(sup.information[3:5, 3:5])[1][:, 0]
         best: tuple[float, FloatArray] | None = None
         for sign in (1.0, -1.0):
