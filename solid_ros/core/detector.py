@@ -443,7 +443,7 @@ class LoopDetector:
             return None
         _, _, stamp = self.database.match_info(seq)
         hit = Hit(Match(seq, prev, self._config.session_id, stamp, math.nan), math.nan,
-                   np.zeros(0, dtype=np.float32), 'step')
+                  np.zeros(0, dtype=np.float32), 'step')
         return self._candidate(proposal, hit, 0.0, fine)
 
     def _with_graph_hits(self, proposal: Proposal, hint: GraphHint) -> list[Hit]:
@@ -487,7 +487,7 @@ class LoopDetector:
                 proposal.r_solid, db.r_solid(seq))
             match = Match(seq, c.index, cfg.session_id, c.stamp_ns, distance)
             hits.append(Hit(match, math.nan, db.heading(seq).copy(), 'graph',
-                             self._mount.level_pose(c.T_mq), is_near, tol, not is_near, sigma))
+                            self._mount.level_pose(c.T_mq), is_near, tol, not is_near, sigma))
         return hits
 
     def _view_centre(self, cloud: FloatArray) -> FloatArray:
