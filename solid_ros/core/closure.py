@@ -21,6 +21,7 @@ session relocalises in.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -139,8 +140,9 @@ class LoopClosure:
             return None
         state = self.graph.update(scan, odom)
         if state.added and self.config.graph_candidates > 0 and self.config.verify:
-            self._hint = GraphHint.from_keyframes(self.graph.keyframes(), state.correction,
-                                                  state.covariance)
+            self._hint = GraphHint.from_keyframes(
+                self.graph.keyframes(), state.correction, state.covariance,
+                partial(self.graph.relative_covariance, index_b=state.index))
         return state
 
     def map_poses(self) -> dict[tuple[int, int], FloatArray]:

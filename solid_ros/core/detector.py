@@ -67,7 +67,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from functools import partial
+from functools import cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -456,7 +456,7 @@ class LoopDetector:
         odom = vector_to_matrix(proposal.pose)
         near = near_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, cfg)
         close = {c.index for c in near}
-        seen, sigma = [], math.inf
+        seen, sigma, centre = [], math.inf, None
         step = np.linalg.solve(hint.odom[-1], odom)
         if len(proposal.cloud_points):
             centre = self._view_centre(proposal.cloud_points)
@@ -476,7 +476,8 @@ class LoopDetector:
                         or h.match.index in viewed):
                     h = replace(h, guess=self._mount.level_pose(T), near=h.match.index in close,
                                 view=h.match.index in viewed, heading_tol_deg=tol,
-                                sigma_m=sigma)
+                                sigma_m=sigma, place_sigma=self._sigma_to(
+                                    hint, h.match.index, step, centre))
             hits.append(h)
         own = {h.match.index for h in hits if h.match.session == cfg.session_id}
         for c, is_near in [(c, True) for c in near] + [(c, False) for c in seen]:
@@ -487,8 +488,17 @@ class LoopDetector:
                 proposal.r_solid, db.r_solid(seq))
             match = Match(seq, c.index, cfg.session_id, c.stamp_ns, distance)
             hits.append(Hit(match, math.nan, db.heading(seq).copy(), 'graph',
-                            self._mount.level_pose(c.T_mq), is_near, tol, not is_near, sigma))
+                            self._mount.level_pose(c.T_mq), is_near, tol, not is_near, sigma,
+                            self._sigma_to(hint, c.index, step, centre)))
         return hits
+
+    def _sigma_to(self, hint: GraphHint, index: int, step: FloatArray,
+                  centre: FloatArray | None) -> Callable[[], float] | None:
+        """The query's position sigma relative to keyframe ``index``, computed once on first
+        call (a joint marginal from gtsam: only for the few loops that ask for it)."""
+        if hint.relative is None or centre is None:
+            return None
+        return cache(partial(hint.sigma_to, index, self._config, step, centre))
 
     def _view_centre(self, cloud: FloatArray) -> FloatArray:
         """Centroid of a keyframe cloud (levelled frame) in the sensor frame."""
@@ -628,9 +638,7 @@ class LoopDetector:
                 break  # enough distinct places: the rest stay unverified ('skipped')
             if any(_same_place(hit.match, v, cfg.margin_neighbourhood) for v in verified):
                 continue
-            place = None if hit.guess is None else partial(
-                knows_place, hit.guess, centre=centre, sigma_m=hit.sigma_m,
-                heading_tol_deg=hit.heading_tol_deg, config=cfg)
+            place = None if hit.guess is None else partial(_knows_place, hit, centre, cfg)
             fine = verifier.fine(query, c, place=place)
             if fine.verified and (self._odometry_refuses(proposal, hit.match,
                                                          self._mount.unlevel(fine.T))
@@ -735,6 +743,14 @@ def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
     return (f'no usable point: 0 of {n} points are finite and inside the range gate '
             f'({cfg.min_range:g} to {cfg.max_range:g} m), the FOV ({cfg.fov_width_deg:g} deg) '
             f'and max_distance ({cfg.max_distance:g} m)')
+
+
+def _knows_place(hit: Hit, centre: FloatArray, config: SolidConfig, T_mq: FloatArray) -> bool:
+    """:func:`~solid_ros.core.proposals.knows_place` for a hit with a guess, with the
+    query's sigma relative to the match keyframe where the graph gives it."""
+    assert hit.guess is not None
+    sigma = hit.sigma_m if hit.place_sigma is None else hit.place_sigma()
+    return knows_place(hit.guess, T_mq, centre, sigma, hit.heading_tol_deg, config)
 
 
 def _turned_from_guess(hit: Hit, T_mq: FloatArray) -> bool:

@@ -64,6 +64,7 @@ from solid_ros.core.graphnoise import (
     loop_covariance,
     odometry_step_noise,
     rotation_angle,
+    swap_blocks,
     unchecked_covariance,
 )
 from solid_ros.core.graphsolver import FactorRecord, GraphSolver
@@ -76,7 +77,7 @@ from solid_ros.core.graphtypes import (
     loop_name,
 )
 from solid_ros.core.gtsam_bridge import GTSAM_ERRORS
-from solid_ros.core.loopgate import Candidate, LoopJudge, loop_sigmas
+from solid_ros.core.loopgate import Candidate, LoopJudge, loop_sigmas, relative
 from solid_ros.core.odometry import OdomSample
 from solid_ros.core.segments import MAP, Segments, move_rigidly, tie_move
 
@@ -378,6 +379,20 @@ class PoseGraph:
         est = self._solver.estimate() if self._kfs else {}
         return [Keyframe(k.index, k.stamp_ns, k.odom.copy(), est[key_of(k.index)], k.segment)
                 for k in self._kfs.values()]
+
+    def relative_covariance(self, index_a: int, index_b: int) -> FloatArray | None:
+        """Covariance of ``X_a^-1 X_b`` for two of this session's keyframes (ROS order, right
+        perturbation in ``b``'s frame): iSAM2's joint marginal, not ``b``'s own marginal, which
+        also holds the uncertainty both share since the first keyframe. None when either is
+        not in the graph or gtsam cannot give it."""
+        if index_a not in self._kfs or index_b not in self._kfs:
+            return None
+        try:
+            _, cov = relative(self._solver, key_of(index_a), key_of(index_b))
+        except GTSAM_ERRORS:
+            return None
+        out: FloatArray = swap_blocks(cov)
+        return out if bool(np.all(np.isfinite(out))) else None
 
     def poses(self) -> dict[int, FloatArray]:
         """Corrected pose ``T_map_sensor`` of every keyframe, by index."""

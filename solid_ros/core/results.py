@@ -10,6 +10,7 @@ frame into the match's; covariance in ROS order with a right perturbation).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -106,8 +107,9 @@ class Hit:
     among the keyframes near the query in the graph's estimate (verified first); ``view``:
     among those whose view centre lies near the query's (verified next);
     ``heading_tol_deg``: how far a loop the graph proposed may turn from the guess;
-    ``sigma_m``: the query's position sigma in the graph, its view centre as the lever (for
-    :func:`~solid_ros.core.proposals.knows_place`)."""
+    ``sigma_m``: the query's position sigma in the graph, its view centre as the lever;
+    ``place_sigma``: the same relative to the match keyframe, asked of the graph only when
+    :func:`~solid_ros.core.proposals.knows_place` needs it (None: use ``sigma_m``)."""
 
     match: Match
     margin: float
@@ -118,6 +120,7 @@ class Hit:
     heading_tol_deg: float = 180.0
     view: bool = False
     sigma_m: float = math.inf
+    place_sigma: Callable[[], float] | None = None
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ read-only. No ROS import.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,12 +72,14 @@ class GraphSnapshot:
             if array is not None:
                 array.flags.writeable = False
 
-    def hint(self) -> GraphHint | None:
-        """The detector's view of the graph (None before the first keyframe)."""
+    def hint(self, relative: Callable[[int], FloatArray | None] | None = None
+             ) -> GraphHint | None:
+        """The detector's view of the graph (None before the first keyframe), with
+        ``relative`` as :attr:`GraphHint.relative`."""
         if not len(self.indices):
             return None
         return GraphHint(self.indices, self.stamps_ns, self.poses, self.odom, self.correction,
-                         self.covariance)
+                         self.covariance, relative)
 
 
 class GraphOutput:
@@ -91,6 +94,7 @@ class GraphOutput:
         self._graph, self._log = graph, log
         self._lock = threading.Lock()  # take() and reset() come from different threads
         self._snapshot = GraphSnapshot()
+        self._resets = 0  # a hint from before a reset must not ask the new graph
         self.failures = 0
 
     @property
@@ -104,8 +108,20 @@ class GraphOutput:
         return self._snapshot
 
     def hint(self) -> GraphHint | None:
-        """The newest snapshot as the detector's hint (see :meth:`GraphSnapshot.hint`)."""
-        return self._snapshot.hint()
+        """The newest snapshot as the detector's hint (see :meth:`GraphSnapshot.hint`); its
+        relative covariances are asked of the graph under the lock, on demand."""
+        snap, resets = self._snapshot, self._resets
+        if not len(snap.indices):
+            return None
+        newest = int(snap.indices[-1])
+
+        def relative(index: int) -> FloatArray | None:
+            with self._lock:
+                if self._resets != resets:
+                    return None
+                return self._graph.relative_covariance(index, newest)
+
+        return snap.hint(relative)
 
     def take(self, verified: Verified) -> BackendState | None:
         """Add a verified keyframe and its loops to the graph (verify thread, keyframe order).
@@ -134,6 +150,7 @@ class GraphOutput:
         """Forget this session's keyframes (``~/reset``); a loaded map stays."""
         with self._lock:
             self._graph.reset()
+            self._resets += 1
             self._snapshot = GraphSnapshot(self._snapshot.version + 1)
 
     def map_poses(self) -> dict[tuple[int, int], FloatArray]:

@@ -89,6 +89,27 @@ def test_latest_covariance_is_ros_order_and_grows_with_the_drive() -> None:
     assert np.trace(late[:3, :3]) > 5.0 * np.trace(early[:3, :3])
 
 
+def test_relative_covariance_is_what_two_keyframes_do_not_share() -> None:
+    ref = square(120)
+    pg = PoseGraph(CFG)
+    states = feed(pg, drifting_odometry(ref, Drift()))
+    own = states[119].covariance
+    assert own is not None
+    # From the first keyframe (held by the prior) it is the newest one's own marginal.
+    first = pg.relative_covariance(0, 119)
+    assert first is not None
+    np.testing.assert_allclose(first, own, rtol=0.05, atol=1e-9)
+    # Between neighbours it is one odometry step, not the whole drive's drift.
+    near = pg.relative_covariance(118, 119)
+    assert near is not None
+    np.testing.assert_allclose(near, near.T, atol=1e-12)
+    assert np.trace(near[:3, :3]) < 0.05 * np.trace(own[:3, :3])
+    mid = pg.relative_covariance(60, 119)
+    assert mid is not None
+    assert np.trace(near[:3, :3]) < np.trace(mid[:3, :3]) < np.trace(own[:3, :3])
+    assert pg.relative_covariance(500, 119) is None  # not in the graph
+
+
 def test_bad_odometry_covariance_falls_back_to_the_model_with_a_throttled_warning() -> None:
     ref = square(60)
     odo = drifting_odometry(ref, Drift())

@@ -279,6 +279,26 @@ def test_position_sigma_is_what_the_search_radius_grows_with() -> None:
     assert position_sigma(np.full((6, 6), np.nan), CFG) == math.inf
 
 
+def test_the_sigma_to_a_keyframe_is_what_the_two_do_not_share() -> None:
+    asked: list[int] = []
+
+    def relative(index: int) -> npt.NDArray[np.float64] | None:
+        asked.append(index)
+        return _cov(0.05) if index == 3 else None
+
+    poses = np.array([_pose(float(i)) for i in range(6)])
+    plain = GraphHint.of(np.arange(6), np.arange(6) * 10**9, poses, poses, np.eye(4), _cov(0.8))
+    hint = GraphHint.of(np.arange(6), np.arange(6) * 10**9, poses, poses, np.eye(4), _cov(0.8),
+                        relative)
+    step, view = _pose(1.0), np.array([15.0, 0.0, 0.0])
+    own = position_sigma(_cov(0.8), CFG, step, view)
+    assert plain.sigma_to(3, CFG, step, view) == own
+    assert hint.sigma_to(3, CFG, step, view) == position_sigma(_cov(0.05), CFG, step, view)
+    assert hint.sigma_to(3, CFG, step, view) < own / 4.0
+    assert hint.sigma_to(4, CFG, step, view) == own  # the graph could not say: its own
+    assert asked == [3, 3, 4]  # asked each time: the detector keeps what it needs
+
+
 def test_a_place_is_known_only_within_one_coarse_voxel_counting_the_graph_s_doubt() -> None:
     cfg = CFG.replace(verify_coarse_voxel_size=1.5)
     guess, centre = _pose(2.0, 1.0, 0.3), np.array([15.0, 0.0, 0.0])

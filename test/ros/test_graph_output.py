@@ -95,9 +95,19 @@ def test_snapshots_follow_the_graph_and_a_loop_moves_the_correction() -> None:
     for array in (hint.poses, hint.odom, hint.indices, hint.correction, after.poses):
         with pytest.raises(ValueError):
             array.flat[0] = 1.0
+    # Relative covariances come from the live graph, to the hint's newest keyframe.
+    assert hint.relative is not None
+    rel = hint.relative(164)
+    assert rel is not None and rel.shape == (6, 6)
+    far = hint.relative(60)
+    assert far is not None and np.trace(rel[:3, :3]) < np.trace(far[:3, :3])
     out.reset()
     assert out.snapshot.version == 167 and len(out.snapshot.stamps_ns) == 0
     assert out.hint() is None
+    # A hint from before the reset asks nothing of the new graph.
+    out.take(_verified(0, odo[0]))
+    out.take(_verified(1, odo[1]))
+    assert hint.relative(0) is None
 
 
 def test_a_keyframe_without_pose_is_logged_and_changes_no_snapshot() -> None:
