@@ -24,7 +24,12 @@ from solid_ros.core.registration import (
     free_space_conflict,
     range_image,
 )
-from solid_ros.core.verification import REASONS, Verifier, registration_settings
+from solid_ros.core.verification import (
+    KNOWN_PLACE_OVERLAP,
+    REASONS,
+    Verifier,
+    registration_settings,
+)
 from solid_ros.sim import DEMO_SENSORS, avia_like, cast_scan
 from solid_ros.sim.drive import Drive, DriveConfig, pose_matrix
 from solid_ros.sim.scene import Room, build_room
@@ -573,3 +578,30 @@ def test_a_single_object_passes_only_where_the_graph_predicted_it() -> None:
     assert res.reason != 'single_object' and res.spread < cfg.verify_min_spread
     # The place is asked about the registered pose T_mq (query -> match): here +0.4, -0.3.
     assert len(seen) == 1 and np.allclose(seen[0][:2, 3], [0.4, -0.3], atol=0.1)
+
+
+def test_a_known_place_asks_less_overlap_of_the_two_views() -> None:
+    # Whether two views show one place is what the overlap bar asks; where the pose graph
+    # predicted the place, KNOWN_PLACE_OVERLAP of the bar suffices, and no less.
+    base = CFG.replace(fov_up_deg=30.0, fov_down_deg=-30.0, verify_min_spread=0.0)
+    rng = np.random.default_rng(5)
+    pts = _corner(rng)
+    # The match saw the corner's walls only in part (the ground all).
+    match_pts = pts + [0.4, -0.3, 0.0]
+    wall = match_pts[:, 2] >= -1.5
+    match_pts = match_pts[~wall | ((match_pts[:, 0] < 13.0) & (match_pts[:, 1] > -1.0))]
+    got = Verifier(base)
+    query = got.prepare(_cloud(pts, base))
+    overlap = got.fine(query, got.coarse(query, 'm', got.prepare(
+        _cloud(match_pts, base)).keyframe_cloud(), [0.0])).overlap
+    assert 0.4 < overlap < 0.6
+    for share, passes in ((0.85, True), (0.6, False)):
+        cfg = base.replace(verify_min_overlap=overlap / share)  # the views share that much
+        v = Verifier(cfg)
+        q = v.prepare(_cloud(pts, cfg))
+        coarse = v.coarse(q, 'm', v.prepare(_cloud(match_pts, cfg)).keyframe_cloud(), [0.0])
+        assert v.fine(q, coarse).reason == 'overlap'
+        assert v.fine(q, coarse, place=lambda T: False).reason == 'overlap'
+        known = v.fine(q, coarse, place=lambda T: True).reason
+        assert (known != 'overlap') is passes, (share, known)
+    assert KNOWN_PLACE_OVERLAP == pytest.approx(0.7)
