@@ -17,7 +17,10 @@ Printed per case: keyframes, queries with a true loop (an earlier keyframe outsi
 exclusion window within 5 m), published loops, correct and false ones (correct: translation
 error < 1 m and rotation error < 3 deg against ``inv(P_match) @ P_query``), precision, recall
 (fraction of the queries with a true loop that got a correct published loop), median pose
-errors of the correct loops, and the verification verdicts (``detector.reasons``). The goal
+errors of the correct loops, the mean 6-DoF NEES of the published loops against the exact
+reference (``nees``: their covariance's honesty on these drives, the loops the back end's
+candidates add included; 6 is ideal, ``bench_nees.py`` has the detail), and the verification
+verdicts (``detector.reasons``). The goal
 (issue 11): precision 1.0 everywhere, no loop at all on ``no_revisit``, recall >= 0.5 on
 ``revisits``. The room case (``room``: three laps of a 7.5 x 6 m room, a scan every 0.25 m,
 the sensor 1.4 m high and its near-field dead zone 0.5 m) counts a true loop within 1.5 m and
@@ -89,6 +92,7 @@ from solid_ros.tools.loops import (  # noqa: E402
     revisits,
     score_loops,
 )
+from solid_ros.tools.uncertainty import nees  # noqa: E402
 
 SENSORS = ('hdl64', 'ouster_like', 'vlp16_like', 'avia_like')
 ROUTES = ('revisits', 'no_revisit')
@@ -279,6 +283,7 @@ def score_case(case: Case, cfg: SolidConfig, ref: np.ndarray,
             q, m = ref[c.query_index], ref[c.match_index]
             te, re_ = pose_error(c.matrix(), np.linalg.solve(m, q))
             gd = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+            n6 = _nees(c, np.linalg.solve(m, q)) if id(c) in published else math.nan
             rec = LoopRecord(c.query_index, c.match_index, c.match_session, id(c) in published,
                              c.verified, c.reason, c.overlap, c.distance, te, re_, gd, c.source)
             records.append(rec)
@@ -290,7 +295,7 @@ def score_case(case: Case, cfg: SolidConfig, ref: np.ndarray,
                          'trans_err_m': te, 'rot_err_deg': re_, 'distance': c.distance,
                          'fitness': c.fitness, 'rmse': c.rmse, 'overlap': c.overlap,
                          'conflict': c.conflict, 'constraint': c.constraint,
-                         'spread': c.spread})
+                         'spread': c.spread, 'nees': n6})
     scores = score_loops(records, truth.has_loop, max_error_m=MAX_ERROR_M,
                          max_error_deg=MAX_ERROR_DEG)
     revisiting = revisits(ref[:, :3, 3], radius=case.revisit_radius,
@@ -298,7 +303,18 @@ def score_case(case: Case, cfg: SolidConfig, ref: np.ndarray,
                           max_heading_deg=case.max_heading_deg)
     scores['revisits'] = revisit_recall(records, revisiting, max_error_m=MAX_ERROR_M,
                                         max_error_deg=MAX_ERROR_DEG)
+    values = [r['nees'] for r in rows if math.isfinite(r['nees'])]
+    scores['nees_mean'] = float(np.mean(values)) if values else math.nan
     return scores, rows
+
+
+def _nees(c: LoopCandidate, T_ref: np.ndarray) -> float:
+    """6-DoF NEES of a published loop against the exact reference (NaN without a usable
+    covariance: descriptor-only loops)."""
+    try:
+        return nees(c.matrix(), T_ref, c.covariance).full
+    except ValueError:
+        return math.nan
 
 
 def _fmt(value: float | None, spec: str) -> str:
@@ -308,7 +324,8 @@ def _fmt(value: float | None, spec: str) -> str:
 
 HEADER = (f'{"case":44s} {"kf":>5s} {"pos":>5s} {"pub":>4s} {"ok":>4s} {"false":>5s} '
           f'{"prec":>5s} {"recall":>6s} {"revis":>5s} {"rv_rec":>6s} {"graph":>5s} '
-          f'{"t_med":>6s} {"r_med":>6s} {"v_p50":>5s} {"v_p95":>5s} {"s":>5s}  verdicts')
+          f'{"t_med":>6s} {"r_med":>6s} {"nees":>6s} {"v_p50":>5s} {"v_p95":>5s} {"s":>5s}  '
+          'verdicts')
 
 
 def row_line(o: Outcome) -> str:
@@ -324,6 +341,7 @@ def row_line(o: Outcome) -> str:
             f'{rv["revisiting"]:5d} {_fmt(rv["recall"], ".3f"):>6s} {graph:5d} '
             f'{_fmt(s["trans_err_m"]["median"], ".3f"):>6s} '
             f'{_fmt(s["rot_err_deg"]["median"], ".2f"):>6s} '
+            f'{_fmt(s.get("nees_mean"), ".2f"):>6s} '
             f'{np.median(v):5.1f} {np.percentile(v, 95):5.1f} {o.seconds:5.0f}  {verdicts}')
 
 
