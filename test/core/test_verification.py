@@ -578,6 +578,20 @@ def test_a_single_object_passes_only_where_the_graph_predicted_it() -> None:
     assert res.reason != 'single_object' and res.spread < cfg.verify_min_spread
     # The place is asked about the registered pose T_mq (query -> match): here +0.4, -0.3.
     assert len(seen) == 1 and np.allclose(seen[0][:2, 3], [0.4, -0.3], atol=0.1)
+    # The place says which object, not that the pose is right: the match also holds a small
+    # panel where the query saw through to the walls, and that conflict (about 0.011) must
+    # stay within half of verify_max_conflict, the stricter bar's.
+    panel = np.c_[rng.uniform(8.0, 8.3, 400), rng.uniform(-0.5, 0.5, 400),
+                  rng.uniform(0.0, 1.0, 400)]
+    cluttered = np.vstack([pts + [0.4, -0.3, 0.0], panel])
+    for bar, passes in ((0.03, True), (0.02, False)):
+        c = cfg.replace(verify_max_conflict=bar)
+        vc = Verifier(c)
+        qc = vc.prepare(_cloud(pts, c))
+        got = vc.fine(qc, vc.coarse(qc, 'm', vc.prepare(_cloud(cluttered, c)).keyframe_cloud(),
+                                    [0.0]), place=predicted)
+        assert got.conflict <= bar and (got.conflict <= bar / 2.0) is passes, got.conflict
+        assert (got.reason != 'single_object') is passes, (bar, got.reason)
 
 
 def test_a_known_place_asks_less_overlap_of_the_two_views() -> None:
