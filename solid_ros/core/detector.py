@@ -67,7 +67,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from functools import cache, partial
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -83,20 +83,18 @@ from solid_ros.core.geometry import (
     rot_z,
     rotation_deg,
     vector_to_matrix,
-    yaw_of,
+)
+from solid_ros.core.graph_hits import (
+    hit_knows_place,
+    turned_from_guess,
+    view_centre,
+    with_graph_hits,
 )
 from solid_ros.core.keyframes import CloudStore, KeyframeCloud
-from solid_ros.core.matching import cosine_distance, estimate_yaw, heading_hypotheses
+from solid_ros.core.matching import estimate_yaw, heading_hypotheses
 from solid_ros.core.mount import Mount
 from solid_ros.core.odometry import OdometryPath, disagreement
-from solid_ros.core.proposals import (
-    GraphHint,
-    heading_tolerance_deg,
-    knows_place,
-    near_keyframes,
-    position_sigma,
-    view_keyframes,
-)
+from solid_ros.core.proposals import GraphHint
 from solid_ros.core.reasons import Reason
 from solid_ros.core.registration import Query
 from solid_ros.core.results import (
@@ -353,7 +351,7 @@ class LoopDetector:
         while len(self._own_seqs) > cfg.capacity:
             del self._own_seqs[next(iter(self._own_seqs))]
         if cloud is not None and len(cloud):
-            self._views[q_index] = self._view_centre(cloud)
+            self._views[q_index] = view_centre(cloud, self._mount)
             while len(self._views) > cfg.capacity:
                 del self._views[next(iter(self._views))]
         self._path.add(q_index, vec)
@@ -380,8 +378,9 @@ class LoopDetector:
         """
         t0 = time.perf_counter()
         cfg = self._config
-        if hint is not None:
-            proposal.hits = self._with_graph_hits(proposal, hint)
+        if hint is not None and cfg.graph_candidates > 0 and self.verifier is not None:
+            proposal.hits = with_graph_hits(proposal, hint, cfg, self.database, self._own_seqs,
+                                            self._views, self._mount)
         gap_blocked = bool(cfg.min_loop_gap and self._last_loop_query is not None
                            and proposal.query_index - self._last_loop_query < cfg.min_loop_gap)
         if self.verifier is None:
@@ -445,65 +444,6 @@ class LoopDetector:
         hit = Hit(Match(seq, prev, self._config.session_id, stamp, math.nan), math.nan,
                   np.zeros(0, dtype=np.float32), 'step')
         return self._candidate(proposal, hit, 0.0, fine)
-
-    def _with_graph_hits(self, proposal: Proposal, hint: GraphHint) -> list[Hit]:
-        """The proposal's hits with the graph's guesses, then the keyframes near the query
-        that the descriptor did not propose (see :meth:`verify`)."""
-        cfg, db = self._config, self.database
-        if (cfg.graph_candidates <= 0 or self.verifier is None or proposal.pose is None
-                or proposal.cloud_points is None):
-            return proposal.hits
-        odom = vector_to_matrix(proposal.pose)
-        near = near_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, cfg)
-        close = {c.index for c in near}
-        seen, sigma, centre = [], math.inf, None
-        step = np.linalg.solve(hint.odom[-1], odom)
-        if len(proposal.cloud_points):
-            centre = self._view_centre(proposal.cloud_points)
-            seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, centre,
-                                  _extent(proposal.cloud_points), self._views, cfg,
-                                  sorted(close))
-            sigma = position_sigma(hint.covariance, cfg, step, centre)
-        viewed = {c.index for c in seen}
-        tol = heading_tolerance_deg(hint.covariance, cfg, step)
-        predicted = hint.predict(odom)
-        hits = []
-        for h in proposal.hits:
-            pose_m = hint.pose_of(h.match.index) if h.match.session == cfg.session_id else None
-            if pose_m is not None:
-                T = np.asarray(np.linalg.solve(pose_m, predicted), dtype=np.float64)
-                if (np.linalg.norm(T[:3, 3]) <= cfg.graph_candidate_max_radius_m
-                        or h.match.index in viewed):
-                    h = replace(h, guess=self._mount.level_pose(T), near=h.match.index in close,
-                                view=h.match.index in viewed, heading_tol_deg=tol,
-                                sigma_m=sigma, place_sigma=self._sigma_to(
-                                    hint, h.match.index, step, centre))
-            hits.append(h)
-        own = {h.match.index for h in hits if h.match.session == cfg.session_id}
-        for c, is_near in [(c, True) for c in near] + [(c, False) for c in seen]:
-            seq = self._own_seqs.get(c.index)
-            if c.index in own or seq is None or not db.is_stored(seq):
-                continue
-            distance = math.nan if proposal.r_solid is None else cosine_distance(
-                proposal.r_solid, db.r_solid(seq))
-            match = Match(seq, c.index, cfg.session_id, c.stamp_ns, distance)
-            hits.append(Hit(match, math.nan, db.heading(seq).copy(), 'graph',
-                            self._mount.level_pose(c.T_mq), is_near, tol, not is_near, sigma,
-                            self._sigma_to(hint, c.index, step, centre)))
-        return hits
-
-    def _sigma_to(self, hint: GraphHint, index: int, step: FloatArray,
-                  centre: FloatArray | None) -> Callable[[], float] | None:
-        """The query's position sigma relative to keyframe ``index``, computed once on first
-        call (a joint marginal from gtsam: only for the few loops that ask for it)."""
-        if hint.relative is None or centre is None:
-            return None
-        return cache(partial(hint.sigma_to, index, self._config, step, centre))
-
-    def _view_centre(self, cloud: FloatArray) -> FloatArray:
-        """Centroid of a keyframe cloud (levelled frame) in the sensor frame."""
-        centre = np.asarray(cloud, dtype=np.float64)[:, :3].mean(axis=0)
-        return self._mount.to_sensor(centre)
 
     def _candidate(self, proposal: Proposal, hit: Hit, yaw: float,
                    result: Verification | None) -> LoopCandidate:
@@ -625,7 +565,7 @@ class LoopDetector:
                 continue
             # The graph's guess first; the heading hypotheses when drift put it too far off.
             starts = [y for y, _ in hyps]
-            place = None if hit.guess is None else partial(_knows_place, hit, centre, cfg)
+            place = None if hit.guess is None else partial(hit_knows_place, hit, centre, cfg)
             c = verifier.coarse(query, (hit.match.session, hit.match.seq), clouds[i], starts,
                                 () if hit.guess is None else (hit.guess,), place)
             if c.rejection is not None:
@@ -639,11 +579,11 @@ class LoopDetector:
                 break  # enough distinct places: the rest stay unverified ('skipped')
             if any(_same_place(hit.match, v, cfg.margin_neighbourhood) for v in verified):
                 continue
-            place = None if hit.guess is None else partial(_knows_place, hit, centre, cfg)
+            place = None if hit.guess is None else partial(hit_knows_place, hit, centre, cfg)
             fine = verifier.fine(query, c, place=place)
             if fine.verified and (self._odometry_refuses(proposal, hit.match,
                                                          self._mount.unlevel(fine.T))
-                                  or _turned_from_guess(hit, fine.T)):
+                                  or turned_from_guess(hit, fine.T)):
                 fine = replace(fine, verified=False, reason='odometry', covariance=None)
             elif (fine.verified and hit.source == 'graph'
                   and not fine.constraint >= GRAPH_CONSTRAINT_FACTOR * cfg.verify_min_constraint):
@@ -744,29 +684,6 @@ def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
     return (f'no usable point: 0 of {n} points are finite and inside the range gate '
             f'({cfg.min_range:g} to {cfg.max_range:g} m), the FOV ({cfg.fov_width_deg:g} deg) '
             f'and max_distance ({cfg.max_distance:g} m)')
-
-
-def _knows_place(hit: Hit, centre: FloatArray, config: SolidConfig, T_mq: FloatArray) -> bool:
-    """:func:`~solid_ros.core.proposals.knows_place` for a hit with a guess, with the
-    query's sigma relative to the match keyframe where the graph gives it."""
-    assert hit.guess is not None
-    sigma = hit.sigma_m if hit.place_sigma is None else hit.place_sigma()
-    return knows_place(hit.guess, T_mq, centre, sigma, hit.heading_tol_deg, config)
-
-
-def _turned_from_guess(hit: Hit, T_mq: FloatArray) -> bool:
-    """Whether a loop the graph proposed turns from the graph's relative heading by more
-    than the hit's tolerance (levelled frames; see :mod:`solid_ros.core.proposals`)."""
-    if hit.source != 'graph' or hit.guess is None:
-        return False
-    turn = math.degrees(abs(yaw_of(np.linalg.solve(hit.guess, T_mq)[:3, :3])))
-    return turn > hit.heading_tol_deg
-
-
-def _extent(cloud: FloatArray) -> float:
-    """RMS horizontal distance of a cloud's points from their centroid, metres."""
-    xy = np.asarray(cloud, dtype=np.float64)[:, :2]
-    return math.sqrt(float(np.mean(np.sum((xy - xy.mean(axis=0)) ** 2, axis=1))))
 
 
 def _same_place(a: Match, b: Match, hood: int) -> bool:

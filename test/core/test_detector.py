@@ -11,10 +11,8 @@ import pytest
 from bad_inputs import unusable_clouds
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.database import Match
-from solid_ros.core.detector import LoopCandidate, LoopDetector, _knows_place
+from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import CloudError, ConfigError, SolidError
-from solid_ros.core.results import Hit
 
 SEC = 1_000_000_000
 
@@ -431,20 +429,3 @@ def test_the_step_can_come_after_the_loops() -> None:
             assert both.step is not None and one.step is not None
             np.testing.assert_allclose(both.step.matrix(), one.step.matrix(), atol=1e-9)
             assert both.times.step > 0.0 and both.loops == first.loops
-
-
-def test_a_known_place_takes_the_sigma_relative_to_the_match_when_there_is_one() -> None:
-    cfg = SolidConfig(verify_coarse_voxel_size=1.5)
-    match = Match(0, 3, 0, 3 * SEC, math.nan)
-    centre, guess = np.array([15.0, 0.0, 0.0]), np.eye(4)
-    # The newest keyframe's own sigma (0.8 m: 3 sigma = 2.4 m) knows no place within 1.5 m ...
-    own = Hit(match, math.nan, np.zeros(0, np.float32), 'graph', guess, True, 5.0,
-              sigma_m=0.8)
-    assert not _knows_place(own, centre, cfg, guess)
-    # ... the one relative to the match (0.2 m: 0.6 m) does, asked only now.
-    asked: list[int] = []
-    rel = Hit(match, math.nan, np.zeros(0, np.float32), 'graph', guess, True, 5.0,
-              sigma_m=0.8, place_sigma=lambda: asked.append(1) or 0.2)
-    assert asked == []
-    assert _knows_place(rel, centre, cfg, guess)
-    assert asked == [1]

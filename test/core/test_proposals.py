@@ -166,25 +166,6 @@ def test_heading_tolerance_follows_the_yaw_uncertainty() -> None:
     assert heading_tolerance_deg(cov, cfg, turn) > heading_tolerance_deg(cov, cfg)
 
 
-def test_a_loop_the_graph_proposed_may_not_turn_from_its_guess() -> None:
-    """In a symmetric room the registration can fit the place turned by 180 degrees."""
-    from solid_ros.core.database import Match
-    from solid_ros.core.detector import _turned_from_guess
-    from solid_ros.core.results import Hit
-
-    guess = np.eye(4)
-    guess[:3, :3] = rot_z(math.radians(30.0))
-    hit = Hit(Match(0, 0, 0, 0, 0.5), math.nan, np.zeros(60, np.float32), 'graph', guess,
-               True, 10.0)
-    near, flipped = guess.copy(), guess.copy()
-    near[:3, :3] = rot_z(math.radians(38.0))
-    flipped[:3, :3] = rot_z(math.radians(210.0))
-    assert not _turned_from_guess(hit, near) and _turned_from_guess(hit, flipped)
-    # The descriptor's candidates keep their own evidence: not checked against the guess.
-    from dataclasses import replace
-    assert not _turned_from_guess(replace(hit, source='descriptor'), flipped)
-
-
 def _street_hint() -> tuple[GraphHint, dict[int, npt.NDArray[np.float64]]]:
     """A street driven east, 40 keyframes 2 m apart, by a sensor that sees 20 m ahead."""
     poses = np.array([_pose(2.0 * i) for i in range(40)])

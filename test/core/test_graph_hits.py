@@ -1,0 +1,54 @@
+"""The pose graph's share of a keyframe's candidates: the known place, the turn check, views."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.database import Match
+from solid_ros.core.geometry import rot_z
+from solid_ros.core.graph_hits import extent, hit_knows_place, turned_from_guess, view_centre
+from solid_ros.core.mount import Mount
+from solid_ros.core.results import Hit
+
+SEC = 1_000_000_000
+
+
+def test_a_known_place_takes_the_sigma_relative_to_the_match_when_there_is_one() -> None:
+    cfg = SolidConfig(verify_coarse_voxel_size=1.5)
+    match = Match(0, 3, 0, 3 * SEC, math.nan)
+    centre, guess = np.array([15.0, 0.0, 0.0]), np.eye(4)
+    # The newest keyframe's own sigma (0.8 m: 3 sigma = 2.4 m) knows no place within 1.5 m ...
+    own = Hit(match, math.nan, np.zeros(0, np.float32), 'graph', guess, True, 5.0,
+              sigma_m=0.8)
+    assert not hit_knows_place(own, centre, cfg, guess)
+    # ... the one relative to the match (0.2 m: 0.6 m) does, asked only now.
+    asked: list[int] = []
+    rel = Hit(match, math.nan, np.zeros(0, np.float32), 'graph', guess, True, 5.0,
+              sigma_m=0.8, place_sigma=lambda: asked.append(1) or 0.2)
+    assert asked == []
+    assert hit_knows_place(rel, centre, cfg, guess)
+    assert asked == [1]
+
+
+def test_a_loop_the_graph_proposed_may_not_turn_from_its_guess() -> None:
+    """In a symmetric room the registration can fit the place turned by 180 degrees."""
+    guess = np.eye(4)
+    guess[:3, :3] = rot_z(math.radians(30.0))
+    hit = Hit(Match(0, 0, 0, 0, 0.5), math.nan, np.zeros(60, np.float32), 'graph', guess,
+               True, 10.0)
+    near, flipped = guess.copy(), guess.copy()
+    near[:3, :3] = rot_z(math.radians(38.0))
+    flipped[:3, :3] = rot_z(math.radians(210.0))
+    assert not turned_from_guess(hit, near) and turned_from_guess(hit, flipped)
+    # The descriptor's candidates keep their own evidence: not checked against the guess.
+    assert not turned_from_guess(replace(hit, source='descriptor'), flipped)
+
+
+def test_view_centre_and_extent_of_a_cloud() -> None:
+    cloud = np.array([[10.0, -1.0, 0.0], [12.0, 1.0, 0.0], [10.0, 1.0, 0.0], [12.0, -1.0, 0.0]])
+    np.testing.assert_allclose(view_centre(cloud, Mount(SolidConfig())), [11.0, 0.0, 0.0])
+    assert extent(cloud) == math.sqrt(2.0)  # every point 1 m off in x and in y
