@@ -411,6 +411,9 @@ class Support:
         inliers: number of supporting points.
         weighted_information: (computed on first use) the information with each supporting
             point weighted by how well its query plane is defined, and the sum of the weights.
+        residual_scores: (computed on first use) the weighted residual scores summed per
+            coarse voxel, squared and summed: what the residuals say about the pose's error
+            (the loop covariance, :func:`solid_ros.core.verification.support_covariance`).
     """
 
     def __init__(self, query: Query, source: Source, T_qm: FloatArray,
@@ -422,7 +425,8 @@ class Support:
         idx = np.asarray(idx, dtype=np.intp)
         near = np.asarray(sq) < settings.neighbour_distance ** 2
         normals = query.normals[idx]
-        plane = np.abs(np.einsum('ij,ij->i', moved - query.points[idx], normals))
+        signed = np.einsum('ij,ij->i', moved - query.points[idx], normals)
+        plane = np.abs(signed)
         inlier = near & (plane < settings.inlier_distance)
         struct_m = np.arange(len(moved)) < source.n_struct
         n_inl = int(inlier.sum())
@@ -438,7 +442,7 @@ class Support:
                               / max(query.n_struct, 1), 0.0)
         self._moved, self._inlier, self._s_rows = moved, inlier, s_rows
         self._near_sq = np.asarray(sq)  # squared distance of each moved point to the query
-        self._jac, self._nn = jac, idx[inlier]
+        self._jac, self._nn, self._residuals = jac, idx[inlier], signed[inlier]
         self.overlap_match = int((inlier & struct_m).sum()) / max(int(struct_m.sum()), 1)
         # Query structure explained by the candidate: query points mapped into the match frame.
         _, tree = source.fine()
@@ -483,15 +487,49 @@ class Support:
         return max(worst / max(self._query.n_struct, 1), 0.0)
 
     @cached_property
+    def weights(self) -> FloatArray:
+        """Weight of each supporting point, ``w = 1 / (1 + t / PLANE_THICKNESS_SCALE)`` with
+        ``t`` its query point's plane thickness. A point's plane distance is only as good as
+        the plane: where the neighbourhood is no clean plane (rough or curved surfaces,
+        corners, one ring of a sparse sensor) the normal is uncertain and the residual misses
+        that error."""
+        w: FloatArray = 1.0 / (1.0 + self._query.plane_thickness[self._nn]
+                               / PLANE_THICKNESS_SCALE)
+        return w
+
+    @cached_property
     def weighted_information(self) -> tuple[FloatArray, float]:
-        """Point-to-plane information sum w J J^T, each supporting point weighted by ``w = 1 /
-        (1 + t / PLANE_THICKNESS_SCALE)`` with ``t`` its query point's plane thickness, and
-        the sum of the weights. A point's plane distance is only as good as the plane: where
-        the neighbourhood is no clean plane (rough or curved surfaces, corners, one ring of a
-        sparse sensor) the normal is uncertain and the residual misses that error."""
-        w = 1.0 / (1.0 + self._query.plane_thickness[self._nn] / PLANE_THICKNESS_SCALE)
+        """Point-to-plane information sum w J J^T over the supporting points (``w``:
+        :attr:`weights`) and the sum of the weights."""
+        w = self.weights
         info: FloatArray = (self._jac * w[:, None]).T @ self._jac
         return info, float(w.sum())
+
+    @cached_property
+    def residual_scores(self) -> FloatArray:
+        """Sum over occupied coarse voxels of ``g g^T``, ``g = sum w r J`` over the voxel's
+        supporting points (``r`` their signed plane distance): the middle of the
+        cluster-robust ("sandwich") covariance. Residuals on one surface patch are summed
+        before squaring, so a patch whose residuals share one error (a tilted normal, a pose
+        error they all see) weighs as one measurement of it, and residuals that cancel on a
+        patch count as noise that averages out."""
+        out: FloatArray = np.zeros((6, 6))
+        if not self.inliers:
+            return out
+        ids = self._patch_ids
+        wr = self.weights * self._residuals
+        g = np.stack([np.bincount(ids, wr * self._jac[:, k], minlength=self.patches)
+                      for k in range(6)], axis=1)
+        out = g.T @ g
+        return out
+
+    @cached_property
+    def _patch_ids(self) -> npt.NDArray[np.intp]:
+        """Coarse voxel (numbered 0 ..) of each supporting point."""
+        cells = np.floor(self._moved[self._inlier] / self._settings.coarse_voxel)
+        _, inverse = np.unique(cells.astype(np.int64), axis=0, return_inverse=True)
+        ids: npt.NDArray[np.intp] = inverse.reshape(-1).astype(np.intp)
+        return ids
 
     @cached_property
     def patches(self) -> int:
@@ -499,8 +537,7 @@ class Support:
         points on one patch are correlated)."""
         if not self.inliers:
             return 0
-        cells = np.floor(self._moved[self._inlier] / self._settings.coarse_voxel)
-        return len(np.unique(cells.astype(np.int64), axis=0))
+        return int(self._patch_ids.max()) + 1
 
 
 def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float) -> float:
