@@ -555,7 +555,6 @@ class LoopDetector:
         assert verifier is not None
         cfg = self._config
         coarse = []
-        centre = query.points[:, :3].mean(axis=0) if len(query.points) else np.zeros(3)
         for i in group:
             hit = proposal.hits[i]
             hyps = heading_hypotheses(proposal.heading, hit.heading, cfg.verify_hypotheses,
@@ -565,14 +564,14 @@ class LoopDetector:
                 continue
             # The graph's guess first; the heading hypotheses when drift put it too far off.
             starts = [y for y, _ in hyps]
-            place = None if hit.guess is None else partial(hit_knows_place, hit, centre, cfg)
             c = verifier.coarse(query, (hit.match.session, hit.match.seq), clouds[i], starts,
-                                () if hit.guess is None else (hit.guess,), place)
+                                () if hit.guess is None else (hit.guess,))
             if c.rejection is not None:
                 results[i] = c.rejection
             else:
                 coarse.append((i, c))
         coarse.sort(key=lambda ic: -ic[1].coarse_overlap)
+        centre = query.points[:, :3].mean(axis=0) if len(query.points) else np.zeros(3)
         for i, c in coarse:
             hit = proposal.hits[i]
             if len(verified) >= cfg.max_candidates:

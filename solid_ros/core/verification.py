@@ -11,8 +11,7 @@ rejection ``reason``):
    :mod:`solid_ros.core.registration`) from the pose graph's relative pose when there is one
    (:mod:`solid_ros.core.proposals`), then from each heading hypothesis (the best A-SOLiD
    shifts), and keeps the best; fewer than ``verify_min_coarse_overlap`` of its coarse
-   structure points land within half a coarse voxel of the query's (``KNOWN_PLACE_OVERLAP``
-   of it where the place is known, as in test 5). This is the cheap screen
+   structure points land within half a coarse voxel of the query's. This is the cheap screen
    most false candidates stop at. A candidate with more than ``verify_coarse_max_points``
    coarse points is registered with an even subsample of that many (the cost grows with
    them).
@@ -265,12 +264,10 @@ class Verifier:
         self._cache.clear()
 
     def coarse(self, query: Query, key: Hashable, cloud: KeyframeCloud | None,
-               yaws: list[float], guesses: Sequence[FloatArray] = (),
-               place: Callable[[FloatArray], bool] | None = None) -> CoarseResult:
+               yaws: list[float], guesses: Sequence[FloatArray] = ()) -> CoarseResult:
         """Coarse stage of one candidate (tests 1-3), started from each of ``guesses``
         (4x4 ``T_mq`` in the levelled frames, e.g. the pose graph's) and then each heading
-        hypothesis of ``yaws``; where ``place`` holds for its pose (see :meth:`fine`),
-        ``KNOWN_PLACE_OVERLAP`` of the coarse overlap bar suffices."""
+        hypothesis of ``yaws``."""
         if cloud is None:
             return CoarseResult(key, None, None, _rejected('no_cloud'))
         if not query.usable:
@@ -281,10 +278,7 @@ class Verifier:
         al = align_coarse(query, src, yaws, self.settings, guesses)
         if al is None:
             return CoarseResult(key, None, None, _rejected('too_sparse'))
-        bar = self._config.verify_min_coarse_overlap
-        if not (al.coarse_overlap >= bar
-                or (al.coarse_overlap >= KNOWN_PLACE_OVERLAP * bar and place is not None
-                    and place(_inv(al.T_qm)))):
+        if not al.coarse_overlap >= self._config.verify_min_coarse_overlap:
             return CoarseResult(key, src, None, _rejected(
                 'coarse_overlap', al.T_qm, coarse_overlap=al.coarse_overlap))
         return CoarseResult(key, src, al, None)

@@ -662,34 +662,3 @@ def test_a_known_place_asks_less_overlap_of_the_two_views() -> None:
         known = v.fine(q, coarse, place=lambda T: True).reason
         assert (known != 'overlap') is passes, (share, known)
     assert KNOWN_PLACE_OVERLAP == pytest.approx(0.7)
-
-
-def test_a_known_place_asks_less_coarse_overlap_too() -> None:
-    base = CFG.replace(fov_up_deg=30.0, fov_down_deg=-30.0)
-    # The query saw the corner's walls only in part: most of the match's do not land on it.
-    match_pts = _corner(np.random.default_rng(5))
-    pts = match_pts - [0.4, -0.3, 0.0]
-    wall = pts[:, 2] >= -1.5
-    pts = pts[~wall | ((pts[:, 0] < 12.6) & (pts[:, 1] > -1.0))]
-    got = Verifier(base)
-    query = got.prepare(_cloud(pts, base))
-    first = got.coarse(query, 'm', got.prepare(_cloud(match_pts, base)).keyframe_cloud(), [0.0])
-    assert first.alignment is not None
-    share_of_all = first.alignment.coarse_overlap
-    assert 0.1 < share_of_all < 0.6
-    asked: list[FloatArray] = []
-
-    def known(T_mq: FloatArray) -> bool:
-        asked.append(T_mq)
-        return True
-
-    for share, passes in ((0.85, True), (0.6, False)):
-        cfg = base.replace(verify_min_coarse_overlap=share_of_all / share)
-        v = Verifier(cfg)
-        q = v.prepare(_cloud(pts, cfg))
-        cloud = v.prepare(_cloud(match_pts, cfg)).keyframe_cloud()
-        asked.clear()
-        assert v.coarse(q, 'm', cloud, [0.0]).rejection is not None
-        assert v.coarse(q, 'm', cloud, [0.0], place=lambda T: False).rejection is not None
-        assert (v.coarse(q, 'm', cloud, [0.0], place=known).rejection is None) is passes
-        assert len(asked) == (1 if passes else 0)
