@@ -351,7 +351,7 @@ class Verifier:
         either way along the least constrained horizontal direction, if any: one beyond
         ``verify_max_drift`` with at least the structure overlap and at most the conflict of
         ``T_qm`` (the one with more overlap, where both restarts find one)."""
-        weak = np.linalg.eigh(sup.information[3:5, 3:5])[1][:, 0]
+        weak = _weak_direction(sup.information)
         best: tuple[float, FloatArray] | None = None
         for sign in (1.0, -1.0):
             shift = np.eye(4)
@@ -375,8 +375,7 @@ class Verifier:
         sensor) by more than ``_PROBE_VOXELS`` fine voxels: with the shift, no point moves
         beyond the fine stage's reach (two voxels); 2 degrees pushed the far structure of a
         narrow view that sees 30 m and more out of it, and right poses did not return."""
-        _, vecs = np.linalg.eigh(info[3:5, 3:5])
-        weak = vecs[:, 0]
+        weak = _weak_direction(info)
         shift = _PROBE_VOXELS * self.settings.voxel
         xy = src.points[:, :2] @ T_qm[:2, :2].T + T_qm[:2, 3]
         far = float(np.percentile(np.linalg.norm(xy, axis=1), _FAR_PERCENTILE))
@@ -437,6 +436,13 @@ def _floored(cov: FloatArray, floor: FloatArray) -> FloatArray:
     vals, vecs = np.linalg.eigh(0.5 * (white + white.T))
     lifted = (vecs * np.maximum(vals, MODEL_FLOOR)) @ vecs.T
     out: FloatArray = chol @ lifted @ chol.T
+    return out
+
+
+def _weak_direction(info: FloatArray) -> FloatArray:
+    """The least constrained horizontal direction (unit x, y) of a rotation-first 6x6
+    information: where both the consistency restarts and the far restarts push."""
+    out: FloatArray = np.linalg.eigh(info[3:5, 3:5])[1][:, 0]
     return out
 
 
