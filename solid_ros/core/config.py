@@ -259,6 +259,11 @@ class SolidConfig(_Schema):
                                   'registration, metres', low=0.05, high=5.0, read_only=True)
     verify_coarse_voxel_size: float = _p(1.5, 'Voxel of the coarse registration of structure '
                                          'points, metres', low=0.1, high=10.0, read_only=True)
+    verify_tight_range: float = _p(8.0, 'A keyframe whose 90th percentile horizontal range is '
+                                   'below this (a room, a tight space) keeps its cloud on half '
+                                   'the voxels; two such keyframes register on half of both '
+                                   'voxels (0 = off), metres', low=0.0, high=1000.0,
+                                   read_only=True)
     verify_coarse_max_points: int = _p(250, 'Most coarse structure points of a candidate '
                                        'registered per heading hypothesis; a denser place is '
                                        'evenly thinned (bounds the coarse cost)', low=10,

@@ -96,7 +96,7 @@ from solid_ros.core.mount import Mount
 from solid_ros.core.odometry import OdometryPath, disagreement
 from solid_ros.core.proposals import GraphHint
 from solid_ros.core.reasons import Reason
-from solid_ros.core.registration import Query
+from solid_ros.core.registration import Query, coarsened
 from solid_ros.core.results import (
     NAN_COV,
     Hit,
@@ -107,7 +107,7 @@ from solid_ros.core.results import (
     StageTimes,
 )
 from solid_ros.core.stamps import check_stamp
-from solid_ros.core.verification import Verification, Verifier
+from solid_ros.core.verification import TIGHT_GRID, Verification, Verifier
 
 __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
            'Source', 'StageTimes']
@@ -268,9 +268,12 @@ class LoopDetector:
         if desc.num_points == 0:  # every point dropped: the R-SOLiD is all zero
             raise CloudError(_unusable(np.shape(pts), self._config))
         cloud = self._keyframe_points(pts) if self.verifier is not None else None
+        tight = cloud is not None and self.verifier is not None and self.verifier.is_tight(cloud)
+        if tight:
+            cloud = self._keyframe_points(pts, tight=True)
         t1 = time.perf_counter()
         proposal = self._propose_descriptor(desc, stamp, vec, cloud)
-        proposal.descriptor = desc
+        proposal.descriptor, proposal.tight = desc, tight
         proposal.describe_ms = (t1 - t0) * 1e3
         proposal.search_ms = (time.perf_counter() - t1) * 1e3
         return proposal
@@ -309,10 +312,12 @@ class LoopDetector:
         kept = preprocess(points, cfg)
         return bool(np.any(np.hypot(kept[:, 0], kept[:, 1]) < cfg.max_distance))
 
-    def _keyframe_points(self, points: npt.ArrayLike) -> FloatArray:
-        """Range gate and FOV clip as for the descriptor, then the verification voxel grid."""
+    def _keyframe_points(self, points: npt.ArrayLike, tight: bool = False) -> FloatArray:
+        """Range gate and FOV clip as for the descriptor, then the verification voxel grid
+        (``tight``: the tight-space one, see ``verify_tight_range``)."""
         gated = preprocess(points, self._gate_cfg)
-        return voxel_downsample(gated, self._config.verify_voxel_size)
+        scale = TIGHT_GRID if tight else 1.0
+        return voxel_downsample(gated, scale * self._config.verify_voxel_size)
 
     def _propose_descriptor(self, desc: Descriptor, stamp: int, vec: FloatArray | None,
                             cloud: FloatArray | None) -> Proposal:
@@ -496,7 +501,7 @@ class LoopDetector:
         assert verifier is not None
         clouds, fetched = self._candidate_clouds(proposal, gap_blocked)
         query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
-                                 else np.zeros((0, 3)))
+                                 else np.zeros((0, 3)), proposal.tight)
         proposal.query = query
         if query.usable:
             self.clouds.put(proposal.seq, query.keyframe_cloud())
@@ -634,7 +639,9 @@ class LoopDetector:
     def own_cloud(self, index: int) -> KeyframeCloud | None:
         """The stored cloud of this session's keyframe ``index`` (None: evicted or none)."""
         seq = self.database.own_seq(index)
-        return None if seq is None else self.clouds.get(seq)
+        cloud = None if seq is None else self.clouds.get(seq)
+        # Peers keep the configuration's grid: a tight-space cloud goes out on it.
+        return None if cloud is None else coarsened(cloud, self._config.verify_voxel_size)
 
     # --------------------------------------------------------------------------- persistence
 

@@ -106,12 +106,14 @@ def _sigma_to(hint: GraphHint, index: int, config: SolidConfig, step: FloatArray
 
 
 def hit_knows_place(hit: Hit, centre: FloatArray, config: SolidConfig,
-                    T_mq: FloatArray) -> bool:
+                    T_mq: FloatArray, coarse_voxel: float | None = None) -> bool:
     """:func:`~solid_ros.core.proposals.knows_place` for a hit with a guess, with the
-    query's sigma relative to the match keyframe where the graph gives it."""
+    query's sigma relative to the match keyframe where the graph gives it (``coarse_voxel``:
+    the pair's coarse grid, when not the configuration's)."""
     assert hit.guess is not None
     sigma = hit.sigma_m if hit.place_sigma is None else hit.place_sigma()
-    return knows_place(hit.guess, T_mq, centre, sigma, hit.heading_tol_deg, config)
+    return knows_place(hit.guess, T_mq, centre, sigma, hit.heading_tol_deg, config,
+                       coarse_voxel)
 
 
 def turned_from_guess(hit: Hit, T_mq: FloatArray) -> bool:

@@ -25,10 +25,13 @@ class KeyframeCloud:
     Attributes:
         points: (N, 3) float32 in the keyframe's levelled sensor frame.
         n_struct: the first ``n_struct`` rows are structure points.
+        voxel: the grid it was downsampled on, metres (0: the configuration's
+            ``verify_voxel_size``; finer in a tight space, see ``verify_tight_range``).
     """
 
     points: npt.NDArray[np.float32]
     n_struct: int
+    voxel: float = 0.0
 
     @property
     def nbytes(self) -> int:

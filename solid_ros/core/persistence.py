@@ -12,8 +12,10 @@ File layout (``numpy.savez``, no pickled objects; loaded with ``allow_pickle=Fal
 - Keyframe clouds (version 2): ``cloud_points`` (P, 3) float32, all clouds one after another
   (each structure points first); ``cloud_offsets`` (n + 1,) int64, scan ``i`` owns rows
   ``offsets[i]:offsets[i + 1]`` (empty: no cloud); ``cloud_struct`` (n,) int32, its structure
-  points (-1: no cloud). ``meta['cloud_points']`` is P. Version 1 files (no clouds) still load;
-  their scans cannot be verified.
+  points (-1: no cloud); ``cloud_voxel`` (n,) float64, the grid each cloud was kept on (0:
+  the configuration's; optional, files from before the tight-space grid lack it).
+  ``meta['cloud_points']`` is P. Version 1 files (no clouds) still load; their scans cannot be
+  verified.
 
 Reading checks every array's dtype and shape in its ``.npy`` header, and the header against the
 archive member's size, before any array is read (:func:`read_npz_headers`), so a crafted file is
@@ -116,6 +118,7 @@ def _export_clouds(db: DescriptorDatabase,
     parts: list[npt.NDArray[np.float32]] = []
     offsets = np.zeros(len(seqs) + 1, dtype=np.int64)
     struct = np.full(len(seqs), -1, dtype=np.int32)
+    voxel = np.zeros(len(seqs), dtype=np.float64)
     for i, seq in enumerate(seqs):
         cloud = clouds.get(seq) if clouds is not None else None
         offsets[i + 1] = offsets[i]
@@ -123,9 +126,11 @@ def _export_clouds(db: DescriptorDatabase,
             parts.append(cloud.points)
             offsets[i + 1] += len(cloud.points)
             struct[i] = cloud.n_struct
+            voxel[i] = cloud.voxel
     points = (np.concatenate(parts).astype(np.float32, copy=False) if parts
               else np.zeros((0, 3), dtype=np.float32))
-    return {'cloud_points': points, 'cloud_offsets': offsets, 'cloud_struct': struct}
+    return {'cloud_points': points, 'cloud_offsets': offsets, 'cloud_struct': struct,
+            'cloud_voxel': voxel}
 
 
 def _export_map_poses(arrays: dict[str, Any],
@@ -343,6 +348,8 @@ def read_database(path: str | Path) -> tuple[dict[str, Any], dict[str, npt.NDArr
             headers = read_npz_headers(zf, p)
             meta = _read_meta(zf, headers, p)
             expected = _expected(meta, p)
+            if 'cloud_voxel' in headers and 'cloud_struct' in expected:  # optional: newer files
+                expected['cloud_voxel'] = (np.dtype(np.float64), expected['cloud_struct'][1])
             check_headers(p, headers, expected)
             arrays = {k: _read_array(zf, headers[k]) for k in expected}
     except DatabaseError:
@@ -556,9 +563,11 @@ def _check_arrays(p: Path, meta: dict[str, Any], arrays: dict[str, npt.NDArray[A
         if arr.dtype != dtype or arr.shape != shape:
             raise DatabaseError(f'{p}: array {key!r} is {arr.dtype}{list(arr.shape)}, '
                                 f'expected {dtype}{list(shape)}')
-    for key in ('r_solid', 'a_solid', 'cloud_points'):
+    for key in ('r_solid', 'a_solid', 'cloud_points', 'cloud_voxel'):
         if key in arrays and not np.all(np.isfinite(arrays[key])):
             raise DatabaseError(f'{p}: array {key!r} holds NaN or infinite values')
+    if 'cloud_voxel' in arrays and np.any(arrays['cloud_voxel'] < 0.0):
+        raise DatabaseError(f"{p}: array 'cloud_voxel' holds negative voxels")
     if 'map_poses' in arrays:
         mp = arrays['map_poses']
         finite = np.isfinite(mp)
@@ -616,10 +625,13 @@ def load_database(path: str | Path, config: SolidConfig,
         raise DatabaseError(f'{path}: {err}') from err
     if clouds is not None and 'cloud_offsets' in arrays:
         off, struct, pts = arrays['cloud_offsets'], arrays['cloud_struct'], arrays['cloud_points']
+        # Files from before the tight-space grid hold clouds on the configuration's grid.
+        voxel = arrays.get('cloud_voxel', np.zeros(len(struct)))
         for seq in range(db.oldest_seq, db.next_seq):
             i = seq - first
             if struct[i] >= 0:
-                clouds.put(seq, KeyframeCloud(pts[off[i]:off[i + 1]], int(struct[i])))
+                clouds.put(seq, KeyframeCloud(pts[off[i]:off[i + 1]], int(struct[i]),
+                                              float(voxel[i])))
     return db
 
 

@@ -259,7 +259,8 @@ def heading_tolerance_deg(covariance: npt.ArrayLike | None, config: SolidConfig,
 
 
 def knows_place(guess: npt.ArrayLike, T_mq: npt.ArrayLike, centre: npt.ArrayLike,
-                sigma_m: float, heading_tol_deg: float, config: SolidConfig) -> bool:
+                sigma_m: float, heading_tol_deg: float, config: SolidConfig,
+                coarse_voxel: float | None = None) -> bool:
     """Whether the graph's guess pins a loop to one object (see the module docstring).
 
     Args:
@@ -270,6 +271,8 @@ def knows_place(guess: npt.ArrayLike, T_mq: npt.ArrayLike, centre: npt.ArrayLike
             (:func:`position_sigma`; ``math.inf``: unknown).
         heading_tol_deg: :func:`heading_tolerance_deg`.
         config: ``graph_candidate_sigmas`` and ``verify_coarse_voxel_size``.
+        coarse_voxel: the pair's coarse grid instead of ``verify_coarse_voxel_size`` (two
+            tight-space keyframes register on a finer one).
     """
     if not math.isfinite(sigma_m):
         return False
@@ -278,8 +281,9 @@ def knows_place(guess: npt.ArrayLike, T_mq: npt.ArrayLike, centre: npt.ArrayLike
     deviation = float(np.linalg.norm((T[:3, :3] - G[:3, :3]) @ c + T[:3, 3] - G[:3, 3]))
     diff = np.linalg.solve(G, T)
     turn = math.degrees(abs(math.atan2(diff[1, 0], diff[0, 0])))
-    return (deviation + config.graph_candidate_sigmas * sigma_m
-            <= config.verify_coarse_voxel_size and turn <= heading_tol_deg)
+    reach = config.verify_coarse_voxel_size if coarse_voxel is None else coarse_voxel
+    return (deviation + config.graph_candidate_sigmas * sigma_m <= reach
+            and turn <= heading_tol_deg)
 
 
 def _largest(block: FloatArray) -> float:

@@ -26,12 +26,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.descriptor import voxel_downsample
 from solid_ros.core.errors import SolidError
 from solid_ros.core.geometry import rot_z
 from solid_ros.core.keyframes import KeyframeCloud
 
 __all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'Query',
-           'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine',
+           'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine', 'coarsened',
            'load_small_gicp']
 
 FloatArray = npt.NDArray[np.float64]
@@ -114,6 +115,7 @@ class Query:
     def __init__(self, points: npt.ArrayLike, settings: RegistrationSettings) -> None:
         sg = load_small_gicp()
         self.settings = settings
+        self._grids: dict[RegistrationSettings, Query] = {}
         pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
         self.size = len(pts)
         self.usable = self.size >= _MIN_POINTS
@@ -165,9 +167,32 @@ class Query:
         return out
 
     def keyframe_cloud(self) -> KeyframeCloud:
-        """The cloud to store for this scan: float32, structure first."""
+        """The cloud to store for this scan: float32, structure first, with its grid."""
         return KeyframeCloud(self.points[self.structure_first].astype(np.float32),
-                             self.n_struct)
+                             self.n_struct, self.settings.voxel)
+
+    def on_grid(self, settings: RegistrationSettings) -> Query:
+        """This scan prepared with ``settings``: itself when they are its own, else its
+        points downsampled on their voxel (a tight-space keyframe registered to an open one;
+        kept after the first call)."""
+        if settings == self.settings:
+            return self
+        other = self._grids.get(settings)
+        if other is None:
+            other = Query(voxel_downsample(self.points, settings.voxel), settings)
+            self._grids[settings] = other
+        return other
+
+
+def coarsened(cloud: KeyframeCloud, voxel: float) -> KeyframeCloud:
+    """``cloud`` on a grid of ``voxel`` when it was kept on a finer one (a tight-space
+    keyframe, see ``verify_tight_range``), structure and the rest downsampled apart so the
+    split stays; else ``cloud`` itself (its grid 0: the configuration's)."""
+    if not 0.0 < cloud.voxel < voxel * (1.0 - 1e-6):
+        return cloud
+    struct = voxel_downsample(cloud.points[:cloud.n_struct], voxel)
+    rest = voxel_downsample(cloud.points[cloud.n_struct:], voxel)
+    return KeyframeCloud(np.concatenate([struct, rest]).astype(np.float32), len(struct), voxel)
 
 
 class Source:

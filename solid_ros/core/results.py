@@ -179,6 +179,7 @@ class Proposal:
         pose: its pose vector ``(x, y, z, qx, qy, qz, qw)``, when known.
         cloud_points: its keyframe cloud points (levelled, gated, clipped, voxelised), or
             None without verification.
+        tight: the cloud is on the tight-space grid (see ``verify_tight_range``).
         hits: descriptor candidates, nearest first.
         best: the nearest stored scan by descriptor, accepted or not.
         descriptor: its descriptor (None when given as a descriptor).
@@ -200,3 +201,4 @@ class Proposal:
     describe_ms: float = math.nan
     search_ms: float = math.nan
     query: Query | None = None
+    tight: bool = False

@@ -119,10 +119,11 @@ from solid_ros.core.registration import (
     Support,
     align_coarse,
     align_fine,
+    coarsened,
 )
 
-__all__ = ['MODEL_FLOOR', 'REASONS', 'RESIDUAL_SCALE', 'CoarseResult', 'Verification', 'Verifier',
-           'registration_settings', 'support_covariance']
+__all__ = ['MODEL_FLOOR', 'REASONS', 'RESIDUAL_SCALE', 'TIGHT_GRID', 'CoarseResult',
+           'Verification', 'Verifier', 'registration_settings', 'support_covariance']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -148,14 +149,20 @@ MODEL_FLOOR = 0.05
 # whether the pose is right is for the tests after it. Views of a place from another
 # heading share less (right poses at 0.31-0.35 on the simulator's tilted look-alike streets).
 KNOWN_PLACE_OVERLAP = 0.7
+# A tight space (a room) registers on this fraction of both voxels: at 3 m a 0.5 m voxel spans
+# 10 deg, and the simulator's room gave headings 3-9 deg off that passed every test on it.
+TIGHT_GRID = 0.5
+_TIGHT_PERCENTILE = 90.0  # of a keyframe's horizontal ranges, against verify_tight_range
 _SOURCE_CACHE = 16  # prepared candidate clouds kept: consecutive queries hit the same places
 
 
-def registration_settings(config: SolidConfig) -> RegistrationSettings:
-    """The registration settings of a configuration."""
-    return RegistrationSettings(voxel=config.verify_voxel_size,
-                                coarse_voxel=config.verify_coarse_voxel_size,
-                                coarse_distance=2.0 * config.verify_coarse_voxel_size,
+def registration_settings(config: SolidConfig, tight: bool = False) -> RegistrationSettings:
+    """The registration settings of a configuration (``tight``: of two tight-space keyframes,
+    both voxels halved; see ``verify_tight_range``)."""
+    scale = TIGHT_GRID if tight else 1.0
+    return RegistrationSettings(voxel=scale * config.verify_voxel_size,
+                                coarse_voxel=scale * config.verify_coarse_voxel_size,
+                                coarse_distance=2.0 * scale * config.verify_coarse_voxel_size,
                                 coarse_max_points=config.verify_coarse_max_points,
                                 max_iterations=config.verify_max_iterations,
                                 inlier_distance=config.verify_inlier_distance)
@@ -211,6 +218,7 @@ class CoarseResult:
     source: Source | None
     alignment: Alignment | None
     rejection: Verification | None
+    query: Query | None = None  # on the grid the pair registers on (see Verifier.coarse)
 
     @property
     def coarse_overlap(self) -> float:
@@ -238,20 +246,41 @@ class Verifier:
     def __init__(self, config: SolidConfig) -> None:
         self._config = config
         self.settings = registration_settings(config)
+        self.tight_settings = registration_settings(config, tight=True)
         self._cache: OrderedDict[Hashable, Source] = OrderedDict()
 
     def reconfigure(self, config: SolidConfig) -> None:
         """Use new thresholds (registration settings are read-only and unchanged)."""
         self._config = config
 
-    def prepare(self, points: npt.ArrayLike) -> Query:
-        """Prepare a keyframe cloud as query (target) of the registrations."""
-        return Query(points, self.settings)
+    def is_tight(self, points: npt.ArrayLike) -> bool:
+        """Whether a keyframe cloud (levelled, on the configuration's grid) shows a tight
+        space: the 90th percentile of its horizontal ranges below ``verify_tight_range``."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        limit = self._config.verify_tight_range
+        if limit <= 0.0 or len(pts) == 0:
+            return False
+        far = np.percentile(np.hypot(pts[:, 0], pts[:, 1]), _TIGHT_PERCENTILE)
+        return bool(far < limit)
 
-    def _source(self, key: Hashable, cloud: KeyframeCloud) -> Source:
+    def prepare(self, points: npt.ArrayLike, tight: bool = False) -> Query:
+        """Prepare a keyframe cloud as query (target) of the registrations (``tight``: kept
+        on the tight-space grid, see :meth:`is_tight`)."""
+        return Query(points, self.tight_settings if tight else self.settings)
+
+    def _pair(self, query: Query, cloud: KeyframeCloud) -> tuple[Query, KeyframeCloud]:
+        """The query and candidate on the grid they register on: the tight one when both were
+        kept on it, else the configuration's."""
+        if query.settings == self.tight_settings and _same_grid(cloud.voxel, query.settings):
+            return query, cloud
+        return query.on_grid(self.settings), coarsened(cloud, self.settings.voxel)
+
+    def _source(self, key: Hashable, cloud: KeyframeCloud,
+                settings: RegistrationSettings) -> Source:
+        key = (key, settings.voxel)
         src = self._cache.get(key)
         if src is None:
-            src = Source(cloud, self.settings)
+            src = Source(cloud, settings)
             self._cache[key] = src
             while len(self._cache) > _SOURCE_CACHE:
                 self._cache.popitem(last=False)
@@ -270,21 +299,22 @@ class Verifier:
         hypothesis of ``yaws``."""
         if cloud is None:
             return CoarseResult(key, None, None, _rejected('no_cloud'))
+        query, cloud = self._pair(query, cloud)
         if not query.usable:
             return CoarseResult(key, None, None, _rejected('too_sparse'))
-        src = self._source(key, cloud)
+        src = self._source(key, cloud, query.settings)
         if not src.usable:
             return CoarseResult(key, None, None, _rejected('too_sparse'))
-        al = align_coarse(query, src, yaws, self.settings, guesses)
+        al = align_coarse(query, src, yaws, query.settings, guesses)
         if al is None:
             return CoarseResult(key, None, None, _rejected('too_sparse'))
         if not al.coarse_overlap >= self._config.verify_min_coarse_overlap:
             return CoarseResult(key, src, None, _rejected(
                 'coarse_overlap', al.T_qm, coarse_overlap=al.coarse_overlap))
-        return CoarseResult(key, src, al, None)
+        return CoarseResult(key, src, al, None, query)
 
     def fine(self, query: Query, coarse: CoarseResult, step: bool = False,
-             place: Callable[[FloatArray], bool] | None = None) -> Verification:
+             place: Callable[[FloatArray, float], bool] | None = None) -> Verification:
         """Fine stage and tests 4-10 of a candidate that passed :meth:`coarse`; a ``step``
         (two consecutive keyframes, started from the odometry) skips test 9: whether one
         object matched another like it is a question of place, and the place is known. So
@@ -293,9 +323,10 @@ class Verifier:
         if coarse.rejection is not None:
             return coarse.rejection
         assert coarse.source is not None and coarse.alignment is not None
+        query = query if coarse.query is None else coarse.query
         src, co = coarse.source, coarse.alignment.coarse_overlap
         hyp = coarse.alignment.hypothesis
-        fine = align_fine(query, src, coarse.alignment.T_qm, self.settings)
+        fine = align_fine(query, src, coarse.alignment.T_qm, query.settings)
         if not fine.converged:
             return _rejected('not_converged', fine.T_qm, coarse_overlap=co)
         result, sup = self._tests(query, src, fine.T_qm, co, hyp, step, place)
@@ -308,15 +339,16 @@ class Verifier:
         return self._tests(query, src, other, co, hyp, step, place)[0]
 
     def _tests(self, query: Query, src: Source, T_qm: FloatArray, co: float, hyp: int,
-               step: bool, place: Callable[[FloatArray], bool] | None,
+               step: bool, place: Callable[[FloatArray, float], bool] | None,
                ) -> tuple[Verification, Support]:
         """Tests 5-10 of a converged pose ``T_qm``, and its support."""
         cfg = self._config
-        sup = Support(query, src, T_qm, self.settings)
+        sup = Support(query, src, T_qm, query.settings)
         # Scores as far as the tests got: the later ones cost more and a rejection skips them.
         scores = {'fitness': sup.fitness, 'rmse': sup.rmse, 'overlap': sup.overlap,
                   'constraint': sup.constraint, 'coarse_overlap': co}
-        known = cache(lambda: place is not None and place(_inv(T_qm)))
+        known = cache(lambda: place is not None
+                      and place(_inv(T_qm), query.settings.coarse_voxel))
         if not (sup.overlap >= cfg.verify_min_overlap
                 or (sup.overlap >= KNOWN_PLACE_OVERLAP * cfg.verify_min_overlap and known())):
             return _rejected('overlap', T_qm, **scores), sup
@@ -355,13 +387,13 @@ class Verifier:
         best: tuple[float, FloatArray] | None = None
         for sign in (1.0, -1.0):
             shift = np.eye(4)
-            shift[:2, 3] = sign * _FAR_VOXELS * self.settings.voxel * weak
-            again = align_fine(query, src, shift @ T_qm, self.settings)
+            shift[:2, 3] = sign * _FAR_VOXELS * query.settings.voxel * weak
+            again = align_fine(query, src, shift @ T_qm, query.settings)
             diff = np.linalg.inv(T_qm) @ again.T_qm
             if not (again.converged
                     and float(np.linalg.norm(diff[:3, 3])) > self._config.verify_max_drift):
                 continue
-            there = Support(query, src, again.T_qm, self.settings)
+            there = Support(query, src, again.T_qm, query.settings)
             if (there.overlap > sup.overlap and there.conflict <= sup.conflict
                     and (best is None or there.overlap > best[0])):
                 best = (there.overlap, again.T_qm)
@@ -376,7 +408,7 @@ class Verifier:
         beyond the fine stage's reach (two voxels); 2 degrees pushed the far structure of a
         narrow view that sees 30 m and more out of it, and right poses did not return."""
         weak = _weak_direction(info)
-        shift = _PROBE_VOXELS * self.settings.voxel
+        shift = _PROBE_VOXELS * query.settings.voxel
         xy = src.points[:, :2] @ T_qm[:2, :2].T + T_qm[:2, 3]
         far = float(np.percentile(np.linalg.norm(xy, axis=1), _FAR_PERCENTILE))
         turn = min(math.radians(_PROBE_DEG), shift / max(far, 1e-6))
@@ -385,7 +417,7 @@ class Verifier:
             shake = np.eye(4)
             shake[:3, :3] = rot_z(sign * turn)
             shake[:2, 3] = sign * shift * weak
-            again = align_fine(query, src, shake @ T_qm, self.settings)
+            again = align_fine(query, src, shake @ T_qm, query.settings)
             diff = np.linalg.inv(T_qm) @ again.T_qm
             worst_m = max(worst_m, float(np.linalg.norm(diff[:3, 3])))
             worst_deg = max(worst_deg, _angle_deg(diff[:3, :3]))
@@ -437,6 +469,11 @@ def _floored(cov: FloatArray, floor: FloatArray) -> FloatArray:
     lifted = (vecs * np.maximum(vals, MODEL_FLOOR)) @ vecs.T
     out: FloatArray = chol @ lifted @ chol.T
     return out
+
+
+def _same_grid(voxel: float, settings: RegistrationSettings) -> bool:
+    """Whether a stored cloud's grid (0: the configuration's) is ``settings``' voxel."""
+    return abs(voxel - settings.voxel) <= 1e-6 * settings.voxel
 
 
 def _weak_direction(info: FloatArray) -> FloatArray:

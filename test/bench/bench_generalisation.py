@@ -25,7 +25,8 @@ verdicts (``detector.reasons``). The goal
 ``revisits``. The room case (``room``: three laps of a 7.5 x 6 m room, a scan every 0.25 m,
 the sensor 1.4 m high and its near-field dead zone 0.5 m) counts a true loop within 1.5 m and
 45 deg of heading (the 70-degree view sees another wall beyond that); its goal is precision
-1.0; ``room_fine`` replays it on 0.25 m keyframe clouds (0.75 m coarse).
+1.0; its scans are tight (``verify_tight_range``), so it registers on 0.25 m keyframe clouds
+(0.75 m coarse); ``room_fine`` sets that grid by hand with the tight-space grid off.
 
 Drifting odometry (``--odometry drift``): the scans go through the product's
 :class:`~solid_ros.core.closure.LoopClosure` with the back end on, fed the simulator's drifting
@@ -154,9 +155,11 @@ def extra_cases() -> dict[str, Case]:
 
 
 def indoor_case(fine: bool = False) -> Case:
-    """The handheld walk through the cluttered room with ``avia.yaml`` (``fine``: keyframe
-    clouds and fine stage on a 0.25 m grid, coarse stage on 0.75 m)."""
-    over = {'verify_voxel_size': 0.25, 'verify_coarse_voxel_size': 0.75} if fine else {}
+    """The handheld walk through the cluttered room with ``avia.yaml`` (its scans are tight:
+    registered on 0.25 / 0.75 m, see ``verify_tight_range``; ``fine``: that grid set by hand,
+    the tight-space grid off)."""
+    over = ({'verify_voxel_size': 0.25, 'verify_coarse_voxel_size': 0.75,
+             'verify_tight_range': 0.0} if fine else {})
     return Case('avia_like/handheld/room' + ('@0.25m' if fine else ''), 'avia_like',
                 'handheld', 'room', 'avia.yaml', overrides=over, radius=1.5,
                 max_heading_deg=45.0, revisit_radius=1.5, revisit_path_m=8.0)

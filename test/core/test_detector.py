@@ -429,3 +429,33 @@ def test_the_step_can_come_after_the_loops() -> None:
             assert both.step is not None and one.step is not None
             np.testing.assert_allclose(both.step.matrix(), one.step.matrix(), atol=1e-9)
             assert both.times.step > 0.0 and both.loops == first.loops
+
+
+def _box_room(rng: np.random.Generator, n: int = 8000) -> npt.NDArray[np.float64]:
+    """Walls of a 6 x 5 m room around the sensor, with floor, ceiling and two cabinets."""
+    u, z = rng.uniform(-1.0, 1.0, n), rng.uniform(-1.4, 1.2, n)
+    side = rng.integers(0, 4, n)
+    x = np.where(side == 0, 3.5, np.where(side == 1, -2.5, 3.0 * u + 0.5))
+    y = np.where(side == 2, 2.0, np.where(side == 3, -3.0, 2.5 * u - 0.5))
+    cab = np.c_[rng.uniform(1.0, 1.6, 800), rng.uniform(1.0, 1.4, 800),
+                rng.uniform(-1.4, 0.3, 800)]
+    floor = np.c_[rng.uniform(-2.5, 3.5, 2000), rng.uniform(-3.0, 2.0, 2000), np.full(2000, -1.4)]
+    return np.vstack([np.c_[x, y, z], cab, floor])
+
+
+def test_a_tight_space_keeps_its_cloud_on_the_tight_grid() -> None:
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    cfg = SolidConfig().replace(exclude_recent_frames=2)
+    det = LoopDetector(cfg)
+    det.process(_box_room(np.random.default_rng(0)), 0)
+    det.process(place(0), SEC)  # boxes out to 60 m
+    (_, room), (_, street) = det.clouds.items()
+    assert room.voxel == 0.5 * cfg.verify_voxel_size and street.voxel == cfg.verify_voxel_size
+    # Peers and the map get the configuration's grid.
+    shared = det.own_cloud(0)
+    assert shared is not None and shared.voxel == cfg.verify_voxel_size
+    assert len(shared.points) < len(room.points)
+    assert det.own_cloud(1) is street
+    off = LoopDetector(cfg.replace(verify_tight_range=0.0))
+    off.process(_box_room(np.random.default_rng(0)), 0)
+    assert [c.voxel for _, c in off.clouds.items()] == [cfg.verify_voxel_size]

@@ -486,6 +486,34 @@ def test_peer_scans_are_saved_after_this_sessions_with_their_clouds(tmp_path: Pa
     assert again.size == 6 and len(loaded) == 2
 
 
+def test_the_grid_of_each_cloud_round_trips_and_older_files_mean_the_configurations(
+        tmp_path: Path) -> None:
+    from solid_ros.core.keyframes import CloudStore, KeyframeCloud
+
+    db = _filled(3)
+    clouds = CloudStore(100, 10**9)
+    clouds.put(db.oldest_seq, KeyframeCloud(np.zeros((3, 3), np.float32), 1, 0.25))
+    clouds.put(db.oldest_seq + 2, KeyframeCloud(np.ones((4, 3), np.float32), 2, 0.5))
+    path = save_database(db, tmp_path / 'db.npz', clouds)
+    loaded = CloudStore(100, 10**9)
+    load_database(path, db.config.replace(session_id=1), loaded)
+    assert [c.voxel for _, c in loaded.items()] == [0.25, 0.5]
+    # A file from before the tight-space grid has no cloud_voxel: its clouds are on the
+    # configuration's grid (0).
+    with zipfile.ZipFile(path) as zf:
+        members = {n: zf.read(n) for n in zf.namelist() if n != 'cloud_voxel.npy'}
+    _npz(tmp_path / 'old.npz', members)
+    old = CloudStore(100, 10**9)
+    load_database(tmp_path / 'old.npz', db.config.replace(session_id=1), old)
+    assert [c.voxel for _, c in old.items()] == [0.0, 0.0]
+    # A crafted grid is refused.
+    buf = io.BytesIO()
+    np.save(buf, np.array([-1.0, 0.0, 0.0]))
+    _npz(tmp_path / 'bad.npz', {**members, 'cloud_voxel.npy': buf.getvalue()})
+    with pytest.raises(DatabaseError, match='cloud_voxel'):
+        load_database(tmp_path / 'bad.npz', db.config.replace(session_id=1), CloudStore(9, 10**9))
+
+
 def test_stored_session_ids_out_of_range_are_refused_in_one_line(tmp_path: Path) -> None:
     path = save_database(_filled(3), tmp_path / 'db.npz')
     meta, arrays = read_database(path)

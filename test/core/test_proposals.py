@@ -292,6 +292,9 @@ def test_a_place_is_known_only_within_one_coarse_voxel_counting_the_graph_s_doub
     assert not knows_place(guess, turned, centre, 0.42, 5.0, cfg)  # 0.26 + 1.26 > 1.5
     shifted = guess @ _pose(1.0, 0.0)
     assert knows_place(guess, shifted, centre, 0.1, 5.0, cfg)  # 1.0 + 0.3
+    # Two tight-space keyframes register on a finer coarse grid, which bounds it instead.
+    assert not knows_place(guess, shifted, centre, 0.1, 5.0, cfg, coarse_voxel=0.75)
+    assert knows_place(guess, guess, centre, 0.1, 5.0, cfg, coarse_voxel=0.75)
     assert not knows_place(guess, guess @ _pose(1.3, 0.0), centre, 0.1, 5.0, cfg)
     # A graph unsure by more than a coarse voxel knows no place, however close the pose.
     assert not knows_place(guess, guess, centre, 0.6, 5.0, cfg)

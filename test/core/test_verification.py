@@ -21,6 +21,7 @@ from solid_ros.core.registration import (
     Source,
     Support,
     align_fine,
+    coarsened,
     free_space_conflict,
     range_image,
 )
@@ -572,6 +573,56 @@ def test_wrong_room_alignments_are_still_refused(q: int, m: int) -> None:
     assert not again.verified and r_again > 45.0, again
 
 
+def test_a_tight_space_registers_on_the_tight_grid() -> None:
+    # The room's scans (every 90th percentile of their horizontal ranges under 7 m) are kept
+    # on half the voxels; two of them register on half of both (verify_tight_range). A street
+    # scan (25 m and more) keeps the configuration's grid, and a pair of one of each
+    # registers on it: the tight cloud coarsened, the tight query downsampled once.
+    cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
+    det, v = LoopDetector(cfg), Verifier(cfg)
+    (sq, pq), (sm, pm) = _room_scan(67), _room_scan(15)  # a lap apart, 0.6 m, 20 deg
+    street = _demo_drive('avia_like', 'revisits', 'varied').scan(40).points
+    assert v.is_tight(det._keyframe_points(sq)) and v.is_tight(det._keyframe_points(sm))
+    assert not v.is_tight(det._keyframe_points(street))
+    assert not Verifier(cfg.replace(verify_tight_range=0.0)).is_tight(det._keyframe_points(sq))
+    assert v.tight_settings.voxel == 0.5 * v.settings.voxel
+    assert v.tight_settings.coarse_voxel == 0.5 * v.settings.coarse_voxel
+
+    query = v.prepare(det._keyframe_points(sq, tight=True), tight=True)
+    match = v.prepare(det._keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
+    assert match.voxel == v.tight_settings.voxel
+    yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
+                                             cfg.verify_hypotheses, cfg.heading_match)]
+    tight = v.coarse(query, 'm', match, yaws)
+    assert tight.query is query and query.settings == v.tight_settings
+    res = v.fine(query, tight)
+    assert res.verified, res
+    t_err, r_err = _errors(res.T, np.linalg.inv(pm) @ pq)
+    assert t_err < 0.05 and r_err < 0.5, (t_err, r_err)  # 0.03 m and 0.9 deg on 0.5 m
+
+    base_match = v.prepare(det._keyframe_points(sm)).keyframe_cloud()
+    mixed = v.coarse(query, 'b', base_match, yaws)
+    assert mixed.query is not None and mixed.query.settings == v.settings
+    assert mixed.query is query.on_grid(v.settings)  # downsampled once, then kept
+    base_query = v.prepare(det._keyframe_points(sq))
+    other = v.coarse(base_query, 't', match, yaws)
+    assert other.query is base_query and other.source is not None
+    assert len(other.source.points) == len(coarsened(match, v.settings.voxel).points)
+
+
+def test_a_cloud_is_coarsened_only_from_a_finer_grid_and_keeps_structure_first() -> None:
+    rng = np.random.default_rng(0)
+    struct, rest = rng.uniform(0, 4, (400, 3)), rng.uniform(0, 4, (300, 3))
+    fine = KeyframeCloud(np.vstack([struct, rest]).astype(np.float32), 400, 0.25)
+    out = coarsened(fine, 1.0)
+    assert out.voxel == 1.0 and 0 < out.n_struct < 400 and len(out.points) - out.n_struct < 300
+    # Each part downsampled on its own: one point per occupied 1 m cell of each.
+    assert out.n_struct == len(np.unique(np.floor(struct.astype(np.float32)), axis=0))
+    for same in (KeyframeCloud(fine.points, 400, 1.0), KeyframeCloud(fine.points, 400, 0.0),
+                 KeyframeCloud(fine.points, 400, 2.0)):
+        assert coarsened(same, 1.0) is same
+
+
 def test_free_space_conflict_counts_seen_through_points_unless_explained() -> None:
     # A wall 10 m ahead seen over +-20 deg; three points 5 m ahead in seen-through space and
     # one on the wall.
@@ -610,13 +661,14 @@ def test_a_single_object_passes_only_where_the_graph_predicted_it() -> None:
     match = v.prepare(_cloud(pts + [0.4, -0.3, 0.0], cfg)).keyframe_cloud()
     seen: list[FloatArray] = []
 
-    def predicted(T_mq: FloatArray) -> bool:
+    def predicted(T_mq: FloatArray, coarse_voxel: float) -> bool:
+        assert coarse_voxel == cfg.verify_coarse_voxel_size  # the pair's grid: not a tight one
         seen.append(T_mq)
         return True
 
     coarse = v.coarse(query, 'm', match, [0.0])
     assert v.fine(query, coarse).reason == 'single_object'
-    assert v.fine(query, coarse, place=lambda T: False).reason == 'single_object'
+    assert v.fine(query, coarse, place=lambda T, c: False).reason == 'single_object'
     res = v.fine(query, coarse, place=predicted)
     assert res.reason != 'single_object' and res.spread < cfg.verify_min_spread
     # The place is asked about the registered pose T_mq (query -> match): here +0.4, -0.3.
@@ -658,7 +710,7 @@ def test_a_known_place_asks_less_overlap_of_the_two_views() -> None:
         q = v.prepare(_cloud(pts, cfg))
         coarse = v.coarse(q, 'm', v.prepare(_cloud(match_pts, cfg)).keyframe_cloud(), [0.0])
         assert v.fine(q, coarse).reason == 'overlap'
-        assert v.fine(q, coarse, place=lambda T: False).reason == 'overlap'
-        known = v.fine(q, coarse, place=lambda T: True).reason
+        assert v.fine(q, coarse, place=lambda T, c: False).reason == 'overlap'
+        known = v.fine(q, coarse, place=lambda T, c: True).reason
         assert (known != 'overlap') is passes, (share, known)
     assert KNOWN_PLACE_OVERLAP == pytest.approx(0.7)
