@@ -117,9 +117,10 @@ def hit_knows_place(hit: Hit, centre: FloatArray, config: SolidConfig,
 
 
 def turned_from_guess(hit: Hit, T_mq: FloatArray) -> bool:
-    """Whether a loop the graph proposed turns from the graph's relative heading by more
-    than the hit's tolerance (levelled frames; see :mod:`solid_ros.core.proposals`)."""
-    if hit.source != 'graph' or hit.guess is None:
+    """Whether a loop the graph placed (proposed, or the descriptor's with the graph's guess)
+    turns from the graph's relative heading by more than the hit's tolerance (levelled
+    frames; see :mod:`solid_ros.core.proposals`)."""
+    if hit.guess is None:
         return False
     turn = math.degrees(abs(yaw_of(np.linalg.solve(hit.guess, T_mq)[:3, :3])))
     return turn > hit.heading_tol_deg
