@@ -40,6 +40,8 @@ FloatArray = npt.NDArray[np.float64]
 STRUCTURE_MAX_NZ = 0.7  # |n_z| below this: a non-horizontal surface (about 45 deg or steeper)
 _NEIGHBOURS = 10  # points per normal/covariance estimate
 _MIN_POINTS = 10  # fewer points than this cannot be registered
+_LEVER_M = 10.0  # the heading's lever in the horizontal constraint, metres
+_MIN_LEVER_M = 0.5  # Support.constraint_near: the lever never shorter than this
 _COARSE_ITERATIONS = 15  # the coarse stage only has to land in the fine stage's basin
 _GOOD_COARSE = 0.5  # coarse overlap that ends the search over heading hypotheses
 # Coarse convergence: 0.5 deg / 1 cm steps are far inside a coarse voxel (small_gicp's
@@ -431,6 +433,8 @@ class Support:
         constraint: smallest eigenvalue of the information that supporting structure points
             give on (x, y, 10 m x yaw), divided by the query's structure points: how well the
             horizontal position and heading are pinned down (0 in a corridor or on a plane).
+        constraint_near: (computed on first use) the same with the heading's lever at the
+            supporting structure's RMS horizontal range when under 10 m.
         information: 6x6 point-to-plane information sum J J^T over all supporting points,
             J = (t x n, n) for a left perturbation of ``T_qm`` (rotation first).
         inliers: number of supporting points.
@@ -462,7 +466,7 @@ class Support:
         self.information: FloatArray = jac.T @ jac
         s_rows = inlier[inlier] & struct_m[inlier]
         # Horizontal block (x, y, yaw); yaw scaled by a 10 m lever to compare with metres.
-        self._hz = jac[s_rows][:, [3, 4, 2]] * np.array([1.0, 1.0, 0.1])
+        self._hz = jac[s_rows][:, [3, 4, 2]] * np.array([1.0, 1.0, 1.0 / _LEVER_M])
         self.constraint = max(float(np.linalg.eigvalsh(self._hz.T @ self._hz)[0])
                               / max(query.n_struct, 1), 0.0)
         self._moved, self._inlier, self._s_rows = moved, inlier, s_rows
@@ -502,6 +506,19 @@ class Support:
                                        self._near_sq < near),
                    free_space_conflict(back, source.ranges, margin, query.n_struct,
                                        np.asarray(sq) < near))
+
+    @cached_property
+    def constraint_near(self) -> float:
+        """:attr:`constraint` with the heading's lever at the supporting structure's RMS
+        horizontal range where that is under 10 m (a room; at least 0.5 m): a heading error
+        moves structure at 2-4 m by a third of what the 10 m lever assumes."""
+        points = self._moved[self._inlier][self._s_rows]
+        if not len(points):
+            return 0.0
+        rms = math.sqrt(float(np.mean(np.sum(points[:, :2] ** 2, axis=1))))
+        lever = min(max(rms, _MIN_LEVER_M), _LEVER_M)
+        hz = self._hz * np.array([1.0, 1.0, _LEVER_M / lever])
+        return max(float(np.linalg.eigvalsh(hz.T @ hz)[0]) / max(self._query.n_struct, 1), 0.0)
 
     @cached_property
     def spread(self) -> float:

@@ -610,6 +610,30 @@ def test_a_tight_space_registers_on_the_tight_grid() -> None:
     assert len(other.source.points) == len(coarsened(match, v.settings.voxel).points)
 
 
+def test_a_known_place_measures_the_heading_at_the_rooms_own_range() -> None:
+    # Scan 71 revisits scan 18 a lap later, right to 0.01 m and 0.1 deg; but its structure
+    # lies 2-4 m away, and with the 10 m lever the constraint (0.0067) is under the bar.
+    # Where the graph predicted the place, the lever is the structure's RMS range.
+    cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
+    det, v = LoopDetector(cfg), Verifier(cfg)
+    (sq, pq), (sm, pm) = _room_scan(71), _room_scan(18)
+    query = v.prepare(det._keyframe_points(sq, tight=True), tight=True)
+    match = v.prepare(det._keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
+    yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
+                                             cfg.verify_hypotheses, cfg.heading_match)]
+    coarse = v.coarse(query, 'm', match, yaws)
+    unknown = v.fine(query, coarse, place=lambda T, c: False)
+    assert unknown.reason == 'constraint' and unknown.constraint < cfg.verify_min_constraint
+    known = v.fine(query, coarse, place=lambda T, c: True)
+    assert known.verified, known
+    assert known.constraint >= 3.0 * unknown.constraint  # the measure that passed
+    t_err, r_err = _errors(known.T, np.linalg.inv(pm) @ pq)
+    assert t_err < 0.05 and r_err < 0.5
+    sup = Support(query, coarse.source, np.linalg.inv(known.T), query.settings)
+    assert sup.constraint == pytest.approx(unknown.constraint, rel=1e-6)
+    assert sup.constraint_near == pytest.approx(known.constraint, rel=1e-6)
+
+
 def test_a_cloud_is_coarsened_only_from_a_finer_grid_and_keeps_structure_first() -> None:
     rng = np.random.default_rng(0)
     struct, rest = rng.uniform(0, 4, (400, 3)), rng.uniform(0, 4, (300, 3))
