@@ -29,6 +29,8 @@ from solid_ros.core.verification import (
     KNOWN_PLACE_OVERLAP,
     MODEL_FLOOR,
     REASONS,
+    RESIDUAL_SCALE,
+    TIGHT_RESIDUAL,
     Verifier,
     registration_settings,
     support_covariance,
@@ -599,6 +601,11 @@ def test_a_tight_space_registers_on_the_tight_grid() -> None:
     assert res.verified, res
     t_err, r_err = _errors(res.T, np.linalg.inv(pm) @ pq)
     assert t_err < 0.05 and r_err < 0.5, (t_err, r_err)  # 0.03 m and 0.9 deg on 0.5 m
+    # Its covariance reads the residuals with the tight grid's share of the factor.
+    sup = Support(query, tight.source, np.linalg.inv(res.T), query.settings)
+    np.testing.assert_allclose(
+        res.covariance, support_covariance(sup, 1.0, RESIDUAL_SCALE * TIGHT_RESIDUAL))
+    assert not np.allclose(res.covariance, support_covariance(sup))
 
     base_match = v.prepare(det._keyframe_points(sm)).keyframe_cloud()
     mixed = v.coarse(query, 'b', base_match, yaws)
@@ -632,6 +639,13 @@ def test_a_known_place_measures_the_heading_at_the_rooms_own_range() -> None:
     sup = Support(query, coarse.source, np.linalg.inv(known.T), query.settings)
     assert sup.constraint == pytest.approx(unknown.constraint, rel=1e-6)
     assert sup.constraint_near == pytest.approx(known.constraint, rel=1e-6)
+    # On a street, where the supporting structure lies beyond 10 m, it is the constraint.
+    v = Verifier(CFG)
+    ref = _truth(273, 5)
+    street = v.prepare(_cloud(_scan(273)[0]))
+    src = Source(v.prepare(_cloud(_scan(5)[0])).keyframe_cloud(), v.settings)
+    far = Support(street, src, np.linalg.inv(ref), v.settings)
+    assert far.constraint_near == far.constraint > CFG.verify_min_constraint
 
 
 def test_a_cloud_is_coarsened_only_from_a_finer_grid_and_keeps_structure_first() -> None:
