@@ -76,6 +76,11 @@ this session's odometry contradicts (``odometry``, see :mod:`solid_ros.core.dete
 rejected candidate carries the scores of the tests it reached (the rest are NaN): the later
 measures cost the most and most candidates never need them.
 
+A keyframe that shows a tight space (:meth:`Verifier.is_tight`: the 90th percentile of its
+horizontal ranges under ``verify_tight_range``) is kept on ``TIGHT_GRID`` of the voxel, and two
+such keyframes run stages and tests on ``TIGHT_GRID`` of both voxels; any other pair runs on the
+configuration's grid (:meth:`Verifier.coarse` picks it).
+
 The relative pose is ``T = T_mq``; its covariance, for a right perturbation ``T exp(delta)``
 with ``delta = (tx, ty, tz, rx, ry, rz)`` in the query frame (ROS order), is
 ``verify_covariance_scale * RESIDUAL_SCALE * inv(A) G inv(A)`` (:func:`support_covariance`;
