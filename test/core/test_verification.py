@@ -648,6 +648,29 @@ def test_a_known_place_measures_the_heading_at_the_rooms_own_range() -> None:
     assert far.constraint_near == far.constraint > CFG.verify_min_constraint
 
 
+@pytest.mark.parametrize(('q', 'm'), [(92, 42), (68, 16)])
+def test_a_slide_along_the_rooms_structure_is_found_out_by_its_fit(q: int, m: int) -> None:
+    # On the tight grid these pairs (0.14 and 0.07 m apart) first settle 1.24 and 0.71 m
+    # along the room's shelves and walls: more structure within reach than the right pose
+    # (0.65 against 0.60, 0.75 against 0.71) but a worse fit (RMS 0.040 / 0.045 against
+    # 0.028) and some conflict. The far restarts (two of the configuration's voxels) reach
+    # the right pose, which fits clearly better: the tests run on it and decide (without a
+    # known place its constraint is under the bar).
+    cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
+    det, v = LoopDetector(cfg), Verifier(cfg)
+    (sq, pq), (sm, pm) = _room_scan(q), _room_scan(m)
+    query = v.prepare(det._keyframe_points(sq, tight=True), tight=True)
+    match = v.prepare(det._keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
+    yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
+                                             cfg.verify_hypotheses, cfg.heading_match)]
+    coarse = v.coarse(query, 'm', match, yaws)
+    res = v.fine(query, coarse)
+    assert not res.verified and res.reason == 'constraint', res
+    assert _errors(res.T, np.linalg.inv(pm) @ pq)[0] < 0.1  # refused at the right pose
+    known = v.fine(query, coarse, place=lambda T, c: True)
+    assert known.verified and _errors(known.T, np.linalg.inv(pm) @ pq)[0] < 0.1, known
+
+
 def test_a_cloud_is_coarsened_only_from_a_finer_grid_and_keeps_structure_first() -> None:
     rng = np.random.default_rng(0)
     struct, rest = rng.uniform(0, 4, (400, 3)), rng.uniform(0, 4, (300, 3))
