@@ -442,7 +442,7 @@ class Support:
             point weighted by how well its query plane is defined, and the sum of the weights.
         residual_scores: (computed on first use) the weighted residual scores summed per
             coarse voxel, squared and summed: what the residuals say about the pose's error
-            (the loop covariance, :func:`solid_ros.core.verification.support_covariance`).
+            (the loop covariance, :func:`solid_ros.core.loop_covariance.support_covariance`).
     """
 
     def __init__(self, query: Query, source: Source, T_qm: FloatArray,

@@ -9,6 +9,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import pytest
+from hdl64_scans import CFG
+from hdl64_scans import keyframe_points as _cloud
+from hdl64_scans import scan as _scan
+from hdl64_scans import truth as _truth
 from project_paths import CONFIG_DIR
 
 from solid_ros.core.config import SolidConfig
@@ -16,6 +20,7 @@ from solid_ros.core.descriptor import describe
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.geometry import rpy_matrix
 from solid_ros.core.keyframes import KeyframeCloud
+from solid_ros.core.loop_covariance import RESIDUAL_SCALE, TIGHT_RESIDUAL, support_covariance
 from solid_ros.core.matching import heading_hypotheses
 from solid_ros.core.registration import (
     Source,
@@ -27,13 +32,9 @@ from solid_ros.core.registration import (
 )
 from solid_ros.core.verification import (
     KNOWN_PLACE_OVERLAP,
-    MODEL_FLOOR,
     REASONS,
-    RESIDUAL_SCALE,
-    TIGHT_RESIDUAL,
     Verifier,
     registration_settings,
-    support_covariance,
 )
 from solid_ros.sim import DEMO_SENSORS, avia_like, cast_scan
 from solid_ros.sim.drive import Drive, DriveConfig, pose_matrix
@@ -45,28 +46,6 @@ pytest.importorskip('small_gicp', reason='small-gicp is not installed')
 
 FloatArray = npt.NDArray[np.float64]
 SEC = 1_000_000_000
-CFG = SolidConfig(verify_voxel_size=0.5, verify_coarse_voxel_size=1.5)
-
-
-@lru_cache(maxsize=1)
-def _drive() -> Drive:
-    return Drive(DriveConfig(seed=0, sensor='hdl64'))
-
-
-@lru_cache(maxsize=16)
-def _scan(index: int) -> tuple[npt.NDArray[np.float32], FloatArray]:
-    scan = _drive().scan(index)
-    return scan.points.copy(), scan.pose
-
-
-def _truth(q: int, m: int) -> FloatArray:
-    """Reference T_mq: pose of the query sensor in the match sensor's frame."""
-    out: FloatArray = np.linalg.inv(_scan(m)[1]) @ _scan(q)[1]
-    return out
-
-
-def _cloud(points: npt.ArrayLike, cfg: SolidConfig = CFG) -> FloatArray:
-    return LoopDetector(cfg)._keyframe_points(points)
 
 
 def _verify(q_pts: npt.ArrayLike, m_pts: npt.ArrayLike, yaws: list[float],
@@ -120,47 +99,6 @@ def test_covariance_scale_and_plane_weights() -> None:
     info, weight = sup.weighted_information
     assert 0.0 < weight <= sup.inliers
     assert np.linalg.eigvalsh(sup.information - info).min() > -1e-6 * np.abs(info).max()
-
-
-def _tilted_support(pitch_deg: float) -> tuple[Support, FloatArray, FloatArray]:
-    """Support of scan 273 against scan 5 at the reference pose tilted in pitch, the tilted
-    ``T_mq`` and the reference."""
-    ref = _truth(273, 5)
-    v = Verifier(CFG)
-    query = v.prepare(_cloud(_scan(273)[0]))
-    match = Source(v.prepare(_cloud(_scan(5)[0])).keyframe_cloud(), v.settings)
-    tilt = np.eye(4)
-    tilt[:3, :3] = rpy_matrix(0.0, math.radians(pitch_deg), 0.0)
-    T_qm = tilt @ np.linalg.inv(ref)
-    return Support(query, match, T_qm, v.settings), np.linalg.inv(T_qm), ref
-
-
-def test_covariance_grows_with_the_error_the_residuals_show() -> None:
-    # A pose tilted by 0.1 deg (16-ring scans' GICP tilts by 0.05 deg): the residuals on the
-    # far ground show the tilt, and the covariance, read from them, grows to cover most of
-    # it; the point-to-plane model's (sigma^2 W / P inv(A)) stayed put at 3 % of it (NEES 823).
-    right, _, _ = _tilted_support(0.0)
-    tilted, T, ref = _tilted_support(0.1)
-    cov_right, cov_tilted = support_covariance(right), support_covariance(tilted)
-    assert cov_right is not None and cov_tilted is not None
-    assert cov_tilted[4, 4] > 9.0 * cov_right[4, 4]  # pitch sigma at least three times
-    assert nees(T, ref, cov_tilted).full < 100.0
-    np.testing.assert_allclose(support_covariance(tilted, 4.0), 4.0 * cov_tilted)
-
-
-def test_covariance_of_a_perfect_fit_is_the_model_floor() -> None:
-    # The same cloud on itself: every residual is 0 (to float32 rounding), and the floor keeps
-    # the loop uncertain.
-    v = Verifier(CFG)
-    query = v.prepare(_cloud(_scan(273)[0]))
-    sup = Support(query, Source(query.keyframe_cloud(), v.settings), np.eye(4), v.settings)
-    assert sup.inliers == query.size and np.abs(sup.residual_scores).max() < 1e-6
-    cov = support_covariance(sup)
-    assert cov is not None
-    info, weight = sup.weighted_information
-    model = 0.02 ** 2 * max(weight / sup.patches, 1.0) * np.linalg.inv(info)
-    order = [3, 4, 5, 0, 1, 2]
-    np.testing.assert_allclose(cov, MODEL_FLOOR * model[np.ix_(order, order)], rtol=1e-6)
 
 
 def test_wrong_heading_hypothesis_is_recovered_by_the_next() -> None:
