@@ -186,6 +186,12 @@ class Query:
         return other
 
 
+def _least_constraint(hz: FloatArray, n_struct: int) -> float:
+    """Smallest eigenvalue of the horizontal information ``hz^T hz`` per query structure
+    point (0 at least)."""
+    return max(float(np.linalg.eigvalsh(hz.T @ hz)[0]) / max(n_struct, 1), 0.0)
+
+
 def coarsened(cloud: KeyframeCloud, voxel: float) -> KeyframeCloud:
     """``cloud`` on a grid of ``voxel`` when it was kept on a finer one (a tight-space
     keyframe, see ``verify_tight_range``), structure and the rest downsampled apart so the
@@ -467,8 +473,7 @@ class Support:
         s_rows = inlier[inlier] & struct_m[inlier]
         # Horizontal block (x, y, yaw); yaw scaled by a 10 m lever to compare with metres.
         self._hz = jac[s_rows][:, [3, 4, 2]] * np.array([1.0, 1.0, 1.0 / _LEVER_M])
-        self.constraint = max(float(np.linalg.eigvalsh(self._hz.T @ self._hz)[0])
-                              / max(query.n_struct, 1), 0.0)
+        self.constraint = _least_constraint(self._hz, query.n_struct)
         self._moved, self._inlier, self._s_rows = moved, inlier, s_rows
         self._near_sq = np.asarray(sq)  # squared distance of each moved point to the query
         self._jac, self._nn, self._residuals = jac, idx[inlier], signed[inlier]
@@ -518,7 +523,7 @@ class Support:
         rms = math.sqrt(float(np.mean(np.sum(points[:, :2] ** 2, axis=1))))
         lever = min(max(rms, _MIN_LEVER_M), _LEVER_M)
         hz = self._hz * np.array([1.0, 1.0, _LEVER_M / lever])
-        return max(float(np.linalg.eigvalsh(hz.T @ hz)[0]) / max(self._query.n_struct, 1), 0.0)
+        return _least_constraint(hz, self._query.n_struct)
 
     @cached_property
     def spread(self) -> float:
