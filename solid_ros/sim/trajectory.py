@@ -11,13 +11,13 @@ degrees off.
 
 :func:`handheld_walk` walks a room (:class:`solid_ros.sim.scene.Room`) instead: laps around its
 centre inside the free walking band, a different line and a look-around sway of the heading
-on each lap, the last lap the other way round.
+on each lap, the last lap the other way round; optionally the hand's roll and pitch.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -118,6 +118,8 @@ class Trajectory:
         label: (N,) per scan 'new', 'same' (an earlier place, similar heading), 'cross'
             (an earlier place, heading differs by 45-135 degrees) or 'reverse'.
         revisit_of: (N,) index of the nearest earlier scan of the same place, -1 for 'new'.
+        roll: (N,) sensor roll, radians (a handheld sensor's tilt; None: level).
+        pitch: (N,) sensor pitch, radians (None: level).
     """
 
     xy: FloatArray
@@ -125,6 +127,8 @@ class Trajectory:
     distance: FloatArray
     label: npt.NDArray[np.str_]
     revisit_of: npt.NDArray[np.int64]
+    roll: FloatArray | None = None
+    pitch: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self.yaw)
@@ -270,7 +274,7 @@ def revisit_labels(xy: FloatArray, yaw: FloatArray, distance: FloatArray,
 
 def handheld_walk(room: Room, seed: int = 0, laps: int = 3, spacing: float = 0.25,
                   sway_deg: float = 30.0, revisit_radius: float = 1.5,
-                  exclude_distance: float = 8.0) -> Trajectory:
+                  exclude_distance: float = 8.0, tilt_deg: float = 0.0) -> Trajectory:
     """Walk laps around the centre of ``room``, a scan every ``spacing`` metres.
 
     Each lap follows a rounded rectangle (a superellipse) along the room's walkway, straying
@@ -289,6 +293,8 @@ def handheld_walk(room: Room, seed: int = 0, laps: int = 3, spacing: float = 0.2
         revisit_radius: a scan revisits an earlier one closer than this, metres.
         exclude_distance: earlier scans walked less than this many metres before do not count
             as revisits.
+        tilt_deg: standard deviation of the hand's roll and pitch, degrees (0: the sensor is
+            held level); they wander smoothly from scan to scan, as a carried sensor does.
 
     Raises:
         ConfigError: a value out of range.
@@ -299,6 +305,8 @@ def handheld_walk(room: Room, seed: int = 0, laps: int = 3, spacing: float = 0.2
         raise ConfigError(f'spacing: {spacing} is out of range; allowed [0.05, 2]')
     if not 0.0 <= sway_deg <= 90.0:
         raise ConfigError(f'sway_deg: {sway_deg} is out of range; allowed [0, 90]')
+    if not 0.0 <= tilt_deg <= 30.0:
+        raise ConfigError(f'tilt_deg: {tilt_deg} is out of range; allowed [0, 30]')
     rng = np.random.default_rng([seed, 0x4A1C])
     cx, cy = room.centre
     # Half axes of the walkway's centre line, and how far a lap may stray from it.
@@ -322,4 +330,10 @@ def handheld_walk(room: Room, seed: int = 0, laps: int = 3, spacing: float = 0.2
     step = np.gradient(path, axis=0)
     heading = np.unwrap(np.arctan2(step[:, 1], step[:, 0]))
     heading = _smooth(heading, 9) + _sway(rng, len(heading), 60, sway_deg)
-    return _sample(path, heading, s_fine, spacing, revisit_radius, exclude_distance)
+    walk = _sample(path, heading, s_fine, spacing, revisit_radius, exclude_distance)
+    if tilt_deg > 0.0:
+        # Their own stream: the same seed walks the same path at any tilt.
+        hand = np.random.default_rng([seed, 0x711])
+        walk = replace(walk, roll=_sway(hand, len(walk), 5, tilt_deg),
+                       pitch=_sway(hand, len(walk), 5, tilt_deg))
+    return walk

@@ -94,3 +94,20 @@ def test_handheld_walk_revisits_a_room_in_both_directions() -> None:
     assert np.degrees(np.median(turn)) > 3.0
     with pytest.raises(ConfigError, match='laps'):
         handheld_walk(room, laps=1)
+
+
+def test_a_handheld_walk_can_tilt_in_the_hand() -> None:
+    room = Room()
+    level, held = handheld_walk(room, 2), handheld_walk(room, 2, tilt_deg=8.0)
+    assert level.roll is None and level.pitch is None
+    # The same path and heading; roll and pitch of 8 degrees' spread, changing smoothly.
+    np.testing.assert_array_equal(held.xy, level.xy)
+    np.testing.assert_array_equal(held.yaw, level.yaw)
+    assert held.roll is not None and held.pitch is not None
+    for angle in (held.roll, held.pitch):
+        assert len(angle) == len(held)
+        assert np.degrees(np.std(angle)) == pytest.approx(8.0)
+        assert np.degrees(np.median(np.abs(np.diff(angle)))) < 4.0
+    assert not np.allclose(held.roll, held.pitch)
+    with pytest.raises(ConfigError, match='tilt_deg'):
+        handheld_walk(room, tilt_deg=45.0)
