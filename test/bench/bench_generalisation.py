@@ -77,6 +77,7 @@ sys.path.insert(0, str(ROOT))
 from solid_ros.core.closure import LoopClosure  # noqa: E402
 from solid_ros.core.config import SolidConfig  # noqa: E402
 from solid_ros.core.detector import LoopCandidate, LoopDetector  # noqa: E402
+from solid_ros.core.geometry import rpy_matrix  # noqa: E402
 from solid_ros.core.odometry import OdomSample  # noqa: E402
 from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, avia_like, cast_scan, simulate  # noqa: E402
 from solid_ros.sim.drive import START_NS, DriveConfig, pose_matrix  # noqa: E402
@@ -151,17 +152,22 @@ def extra_cases() -> dict[str, Case]:
                            'lookalike', 'spinning_fov90.yaml'),
         'room': indoor_case(),
         'room_fine': indoor_case(fine=True),
+        'room_tilt': indoor_case(tilt_deg=8.0),
     }
 
 
-def indoor_case(fine: bool = False) -> Case:
+def indoor_case(fine: bool = False, tilt_deg: float = 0.0) -> Case:
     """The handheld walk through the cluttered room with ``avia.yaml`` (its scans are tight:
     registered on 0.25 / 0.75 m, see ``verify_tight_range``; ``fine``: that grid set by hand,
-    the tight-space grid off)."""
+    the tight-space grid off; ``tilt_deg``: the hand's roll and pitch, as in
+    :func:`~solid_ros.sim.trajectory.handheld_walk`)."""
     over = ({'verify_voxel_size': 0.25, 'verify_coarse_voxel_size': 0.75,
              'verify_tight_range': 0.0} if fine else {})
-    return Case('avia_like/handheld/room' + ('@0.25m' if fine else ''), 'avia_like',
-                'handheld', 'room', 'avia.yaml', overrides=over, radius=1.5,
+    name = ('avia_like/handheld/room' + ('@0.25m' if fine else '')
+            + (f'+tilt{tilt_deg:g}' if tilt_deg else ''))
+    # For the room, ``drive`` holds the walk's options.
+    return Case(name, 'avia_like', 'handheld', 'room', 'avia.yaml',
+                drive={'tilt_deg': tilt_deg} if tilt_deg else {}, overrides=over, radius=1.5,
                 max_heading_deg=45.0, revisit_radius=1.5, revisit_path_m=8.0)
 
 
@@ -179,7 +185,7 @@ def case_scans(case: Case, seed: int, scans: int | None, drift: str = 'default')
             yield scan.points, scan.stamp_ns, scan.pose, scan.odom
         return
     room = Room()
-    scene, walk = build_room(room, seed), handheld_walk(room, seed)
+    scene, walk = build_room(room, seed), handheld_walk(room, seed, **case.drive)
     model = ROOM_SENSOR
     model_drift = DriveConfig(**DRIFTS[drift]).drift
     assert model_drift is not None
@@ -187,12 +193,20 @@ def case_scans(case: Case, seed: int, scans: int | None, drift: str = 'default')
     odom_xy, odom_yaw = drift_planar(walk.xy, walk.yaw, model_drift, noise)
     for i in range(len(walk) if scans is None else min(scans, len(walk))):
         x, y, yaw = float(walk.xy[i, 0]), float(walk.xy[i, 1]), float(walk.yaw[i])
-        cloud = cast_scan(scene, model, x, y, yaw, np.random.default_rng([seed, i, 0x1D4]))
+        # The hand's tilt: the sensor's own frame, and in both poses (an odometry knows it).
+        tilt = np.eye(4)
+        sensor = model
+        if walk.roll is not None and walk.pitch is not None:
+            roll, pitch = float(walk.roll[i]), float(walk.pitch[i])
+            tilt[:3, :3] = rpy_matrix(roll, pitch, 0.0)
+            sensor = model.replace(mount_roll_deg=math.degrees(roll),
+                                   mount_pitch_deg=math.degrees(pitch))
+        cloud = cast_scan(scene, sensor, x, y, yaw, np.random.default_rng([seed, i, 0x1D4]))
         # A walking pace: a scan every 0.25 m at 1 m/s.
         yield (cloud[:, :3], START_NS + i * 250_000_000,
-               pose_matrix(x, y, model.mount_height, yaw),
+               pose_matrix(x, y, model.mount_height, yaw) @ tilt,
                pose_matrix(float(odom_xy[i, 0]), float(odom_xy[i, 1]), model.mount_height,
-                           float(odom_yaw[i])))
+                           float(odom_yaw[i])) @ tilt)
 
 
 def case_config(case: Case, odom_check: bool = False,
