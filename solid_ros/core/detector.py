@@ -86,6 +86,7 @@ from solid_ros.core.geometry import (
 )
 from solid_ros.core.graph_hits import (
     hit_knows_place,
+    strayed_from_guess,
     turned_from_guess,
     view_centre,
     with_graph_hits,
@@ -267,10 +268,11 @@ class LoopDetector:
         desc = describe(pts, self._config)
         if desc.num_points == 0:  # every point dropped: the R-SOLiD is all zero
             raise CloudError(_unusable(np.shape(pts), self._config))
-        cloud = self._keyframe_points(pts) if self.verifier is not None else None
+        up = self._mount.upright(vec)
+        cloud = self._keyframe_points(pts, up=up) if self.verifier is not None else None
         tight = cloud is not None and self.verifier is not None and self.verifier.is_tight(cloud)
         if tight:
-            cloud = self._keyframe_points(pts, tight=True)
+            cloud = self._keyframe_points(pts, tight=True, up=up)
         t1 = time.perf_counter()
         proposal = self._propose_descriptor(desc, stamp, vec, cloud)
         proposal.descriptor, proposal.tight = desc, tight
@@ -312,12 +314,17 @@ class LoopDetector:
         kept = preprocess(points, cfg)
         return bool(np.any(np.hypot(kept[:, 0], kept[:, 1]) < cfg.max_distance))
 
-    def _keyframe_points(self, points: npt.ArrayLike, tight: bool = False) -> FloatArray:
+    def _keyframe_points(self, points: npt.ArrayLike, tight: bool = False,
+                         up: FloatArray | None = None) -> FloatArray:
         """Range gate and FOV clip as for the descriptor, then the verification voxel grid
-        (``tight``: the tight-space one, see ``verify_tight_range``)."""
+        (``tight``: the tight-space one, see ``verify_tight_range``), upright when ``up``
+        (see :meth:`Mount.upright`)."""
         gated = preprocess(points, self._gate_cfg)
-        scale = TIGHT_GRID if tight else 1.0
-        return voxel_downsample(gated, scale * self._config.verify_voxel_size)
+        voxel = (TIGHT_GRID if tight else 1.0) * self._config.verify_voxel_size
+        if up is None:
+            return voxel_downsample(gated, voxel)
+        out: FloatArray = voxel_downsample(gated[:, :3] @ up.T, voxel) @ up
+        return out
 
     def _propose_descriptor(self, desc: Descriptor, stamp: int, vec: FloatArray | None,
                             cloud: FloatArray | None) -> Proposal:
@@ -587,7 +594,8 @@ class LoopDetector:
             fine = verifier.fine(query, c, place=place)
             if fine.verified and (self._odometry_refuses(proposal, hit.match,
                                                          self._mount.unlevel(fine.T))
-                                  or turned_from_guess(hit, fine.T)):
+                                  or turned_from_guess(hit, fine.T)
+                                  or strayed_from_guess(hit, centre, cfg, fine.T)):
                 fine = replace(fine, verified=False, reason='odometry', covariance=None)
             elif (fine.verified and hit.source == 'graph'
                   and not fine.constraint >= GRAPH_CONSTRAINT_FACTOR * cfg.verify_min_constraint):

@@ -11,8 +11,10 @@ import pytest
 from bad_inputs import unusable_clouds
 
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.descriptor import preprocess
 from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import CloudError, ConfigError, SolidError
+from solid_ros.core.geometry import rpy_matrix
 
 SEC = 1_000_000_000
 
@@ -459,3 +461,33 @@ def test_a_tight_space_keeps_its_cloud_on_the_tight_grid() -> None:
     off = LoopDetector(cfg.replace(verify_tight_range=0.0))
     off.process(_box_room(np.random.default_rng(0)), 0)
     assert [c.voxel for _, c in off.clouds.items()] == [cfg.verify_voxel_size]
+
+
+def test_a_tilted_keyframe_is_gridded_upright_when_its_pose_says_so() -> None:
+    # A hand-held sensor rolled 10 and pitched -6 degrees in the box room. With its pose, the
+    # keyframe cloud is voxelised in the odometry's upright frame (and stored in the sensor's
+    # as ever): each upright cell holds one stored point, one per cell the scan occupies.
+    # Without the pose the grid tilts with the sensor and its centroids share upright cells.
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    tilt = rpy_matrix(math.radians(10.0), math.radians(-6.0), 0.0)
+    world = _box_room(np.random.default_rng(0)) + [0.11, 0.07, 0.03]  # walls off the grid
+    scan = world @ tilt  # sensor frame: p_s = R^T p_w, the sensor at the origin
+    pose = np.eye(4)
+    pose[:3, :3] = tilt
+
+    def upright_cells(det: LoopDetector) -> tuple[int, int]:
+        ((_, cloud),) = det.clouds.items()
+        cells = np.floor(cloud.points.astype(np.float64) @ tilt.T / cloud.voxel)
+        return len(cloud.points), len(np.unique(cells, axis=0))
+
+    cfg = SolidConfig().replace(exclude_recent_frames=2)
+    held = LoopDetector(cfg)
+    held.process(scan, 0, pose)
+    ((_, cloud),) = held.clouds.items()
+    gated = preprocess(scan, held._gate_cfg)  # the range gate and FOV clip, no grid
+    occupied = len(np.unique(np.floor(gated @ tilt.T / cloud.voxel), axis=0))
+    assert upright_cells(held) == (occupied, occupied)
+    blind = LoopDetector(cfg)
+    blind.process(scan, 0)
+    points, cells = upright_cells(blind)
+    assert cells < points
