@@ -26,6 +26,7 @@ from solid_ros.core.matching import cosine_distance
 from solid_ros.core.mount import Mount
 from solid_ros.core.proposals import (
     GraphHint,
+    guess_deviation,
     heading_tolerance_deg,
     knows_place,
     near_keyframes,
@@ -34,9 +35,13 @@ from solid_ros.core.proposals import (
 )
 from solid_ros.core.results import Hit, Proposal
 
-__all__ = ['extent', 'hit_knows_place', 'turned_from_guess', 'view_centre', 'with_graph_hits']
+__all__ = ['STRAY_FLOOR_M', 'extent', 'hit_knows_place', 'strayed_from_guess', 'turned_from_guess',
+           'view_centre', 'with_graph_hits']
 
 FloatArray = npt.NDArray[np.float64]
+
+# Beyond the graph's sigmas, how far a loop may move the query from the graph's guess, metres.
+STRAY_FLOOR_M = 1.0
 
 
 def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
@@ -124,6 +129,20 @@ def turned_from_guess(hit: Hit, T_mq: FloatArray) -> bool:
         return False
     turn = math.degrees(abs(yaw_of(np.linalg.solve(hit.guess, T_mq)[:3, :3])))
     return turn > hit.heading_tol_deg
+
+
+def strayed_from_guess(hit: Hit, centre: FloatArray, config: SolidConfig,
+                       T_mq: FloatArray) -> bool:
+    """Whether a loop the graph placed moves the query's view ``centre`` from the graph's
+    guess by more than ``graph_candidate_sigmas`` of the query's sigma relative to the match
+    plus :data:`STRAY_FLOOR_M` (levelled frames)."""
+    if hit.guess is None:
+        return False
+    sigma = hit.sigma_m if hit.place_sigma is None else hit.place_sigma()
+    if not math.isfinite(sigma):
+        return False
+    return (guess_deviation(hit.guess, T_mq, centre)
+            > STRAY_FLOOR_M + config.graph_candidate_sigmas * sigma)
 
 
 def view_centre(cloud: FloatArray, mount: Mount) -> FloatArray:

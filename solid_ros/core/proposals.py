@@ -277,13 +277,20 @@ def knows_place(guess: npt.ArrayLike, T_mq: npt.ArrayLike, centre: npt.ArrayLike
     if not math.isfinite(sigma_m):
         return False
     G, T = np.asarray(guess, dtype=np.float64), np.asarray(T_mq, dtype=np.float64)
-    c = np.asarray(centre, dtype=np.float64).reshape(3)
-    deviation = float(np.linalg.norm((T[:3, :3] - G[:3, :3]) @ c + T[:3, 3] - G[:3, 3]))
+    deviation = guess_deviation(G, T, centre)
     diff = np.linalg.solve(G, T)
     turn = math.degrees(abs(math.atan2(diff[1, 0], diff[0, 0])))
     reach = config.verify_coarse_voxel_size if coarse_voxel is None else coarse_voxel
     return (deviation + config.graph_candidate_sigmas * sigma_m <= reach
             and turn <= heading_tol_deg)
+
+
+def guess_deviation(guess: npt.ArrayLike, T_mq: npt.ArrayLike, centre: npt.ArrayLike) -> float:
+    """How far the registered ``T_mq`` moves the query's view ``centre`` from where the
+    graph's ``guess`` puts it, metres (levelled frames)."""
+    G, T = np.asarray(guess, dtype=np.float64), np.asarray(T_mq, dtype=np.float64)
+    c = np.asarray(centre, dtype=np.float64).reshape(3)
+    return float(np.linalg.norm((T[:3, :3] - G[:3, :3]) @ c + T[:3, 3] - G[:3, 3]))
 
 
 def _largest(block: FloatArray) -> float:

@@ -10,7 +10,14 @@ import numpy as np
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database import Match
 from solid_ros.core.geometry import rot_z
-from solid_ros.core.graph_hits import extent, hit_knows_place, turned_from_guess, view_centre
+from solid_ros.core.graph_hits import (
+    STRAY_FLOOR_M,
+    extent,
+    hit_knows_place,
+    strayed_from_guess,
+    turned_from_guess,
+    view_centre,
+)
 from solid_ros.core.mount import Mount
 from solid_ros.core.results import Hit
 
@@ -50,6 +57,38 @@ def test_a_loop_the_graph_placed_may_not_turn_from_its_guess() -> None:
     desc = replace(hit, source='descriptor')
     assert turned_from_guess(desc, flipped) and not turned_from_guess(desc, near)
     assert not turned_from_guess(replace(desc, guess=None), flipped)
+
+
+def test_a_loop_the_graph_placed_may_not_stray_from_its_guess() -> None:
+    """A slide along a room's shelves: the simulator's tilted room walk (seed 6) published a
+    loop 2.1 m from where the graph put the query, 0.07 m sure of it (its right loops lay
+    within 0.22 m of the guess)."""
+    cfg = SolidConfig()
+    match = Match(0, 21, 0, 21 * SEC, math.nan)
+    centre, guess = np.array([2.0, 0.0, 0.0]), np.eye(4)
+    hit = Hit(match, math.nan, np.zeros(0, np.float32), 'graph', guess, False, 5.0,
+              sigma_m=0.5, place_sigma=lambda: 0.07)
+    slid, near, turned = guess.copy(), guess.copy(), guess.copy()
+    slid[:3, 3] = [0.0, 2.1, 0.0]
+    near[:3, 3] = [0.0, 0.22, 0.0]
+    # Turned about the sensor, the view centre 2 m ahead moves 2 m x sin(40 deg) = 1.29 m.
+    turned[:3, :3] = rot_z(math.radians(40.0))
+    assert strayed_from_guess(hit, centre, cfg, slid)
+    assert not strayed_from_guess(hit, centre, cfg, near)
+    assert strayed_from_guess(hit, centre, cfg, turned)
+    # The allowance is the floor plus graph_candidate_sigmas of the relative sigma.
+    edge = STRAY_FLOOR_M + cfg.graph_candidate_sigmas * 0.07
+    for dev, out in ((edge - 0.01, False), (edge + 0.01, True)):
+        moved = guess.copy()
+        moved[:3, 3] = [dev, 0.0, 0.0]
+        assert strayed_from_guess(hit, centre, cfg, moved) is out
+    # Descriptor candidates with a guess too; nothing without a guess or a usable sigma.
+    desc = replace(hit, source='descriptor', place_sigma=None)
+    assert not strayed_from_guess(desc, centre, cfg, slid)  # its own 0.5 m: 2.5 m allowed
+    slid[:3, 3] = [0.0, 2.6, 0.0]
+    assert strayed_from_guess(desc, centre, cfg, slid)
+    assert not strayed_from_guess(replace(desc, guess=None), centre, cfg, slid)
+    assert not strayed_from_guess(replace(desc, sigma_m=math.inf), centre, cfg, slid)
 
 
 def test_view_centre_and_extent_of_a_cloud() -> None:
