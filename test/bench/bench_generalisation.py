@@ -26,7 +26,9 @@ verdicts (``detector.reasons``). The goal
 the sensor 1.4 m high and its near-field dead zone 0.5 m) counts a true loop within 1.5 m and
 45 deg of heading (the 70-degree view sees another wall beyond that); its goal is precision
 1.0; its scans are tight (``verify_tight_range``), so it registers on 0.25 m keyframe clouds
-(0.75 m coarse); ``room_fine`` sets that grid by hand with the tight-space grid off.
+(0.75 m coarse); ``room_fine`` sets that grid by hand with the tight-space grid off;
+``room_tilt`` holds the sensor as a hand does, its roll and pitch wandering by 8 deg (both
+poses carry the tilt, as a LiDAR-inertial odometry's would).
 
 Drifting odometry (``--odometry drift``): the scans go through the product's
 :class:`~solid_ros.core.closure.LoopClosure` with the back end on, fed the simulator's drifting
