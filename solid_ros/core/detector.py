@@ -268,11 +268,10 @@ class LoopDetector:
         desc = describe(pts, self._config)
         if desc.num_points == 0:  # every point dropped: the R-SOLiD is all zero
             raise CloudError(_unusable(np.shape(pts), self._config))
-        up = self._mount.upright(vec)
-        cloud = self._keyframe_points(pts, up=up) if self.verifier is not None else None
+        cloud = self._keyframe_points(pts) if self.verifier is not None else None
         tight = cloud is not None and self.verifier is not None and self.verifier.is_tight(cloud)
         if tight:
-            cloud = self._keyframe_points(pts, tight=True, up=up)
+            cloud = self._keyframe_points(pts, tight=True, up=self._mount.upright(vec))
         t1 = time.perf_counter()
         proposal = self._propose_descriptor(desc, stamp, vec, cloud)
         proposal.descriptor, proposal.tight = desc, tight
@@ -317,8 +316,8 @@ class LoopDetector:
     def _keyframe_points(self, points: npt.ArrayLike, tight: bool = False,
                          up: FloatArray | None = None) -> FloatArray:
         """Range gate and FOV clip as for the descriptor, then the verification voxel grid
-        (``tight``: the tight-space one, see ``verify_tight_range``), upright when ``up``
-        (see :meth:`Mount.upright`)."""
+        (``tight``: the tight-space one, see ``verify_tight_range``), laid out upright when
+        ``up`` (see :meth:`Mount.upright`; tight keyframes only)."""
         gated = preprocess(points, self._gate_cfg)
         voxel = (TIGHT_GRID if tight else 1.0) * self._config.verify_voxel_size
         if up is None:

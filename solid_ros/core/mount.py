@@ -6,7 +6,8 @@ sensor. Loops are found between levelled frames and reported between the sensor 
 module is the one place that converts points, poses and covariances between the two.
 
 A sensor that tilts as it moves (carried by hand, on a legged robot) is levelled per scan only
-for the keyframe cloud's voxel grid (:meth:`Mount.upright`); its frames stay those above.
+for a tight-space keyframe cloud's voxel grid (:meth:`Mount.upright`); its frames stay those
+above.
 """
 
 from __future__ import annotations
@@ -57,11 +58,12 @@ class Mount:
         (the sensor's, ``x y z qx qy qz qw``), None without a pose or under
         :data:`UPRIGHT_MIN_DEG` of tilt.
 
-        The keyframe cloud is voxelised in that frame (and rotated back): on a grid that
-        tilts with the hand, a vertical edge crosses the voxel columns at a slant, its
+        A tight-space keyframe cloud is voxelised in that frame (and rotated back): on a grid
+        that tilts with the hand, a vertical edge crosses the voxel columns at a slant, its
         centroids zigzag off the edge, and a right alignment of two scans held at different
         tilts looks like free-space conflict (simulated room walks with 8 degrees of hand
-        tilt, see the README's Tight spaces).
+        tilt, see the README's Tight spaces). Open scenes keep the sensor's grid: on hku1
+        (hand-held, pitching by 20 degrees) an upright grid gave no more loops.
         """
         if pose is None:
             return None

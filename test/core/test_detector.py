@@ -465,9 +465,10 @@ def test_a_tight_space_keeps_its_cloud_on_the_tight_grid() -> None:
 
 def test_a_tilted_keyframe_is_gridded_upright_when_its_pose_says_so() -> None:
     # A hand-held sensor rolled 10 and pitched -6 degrees in the box room. With its pose, the
-    # keyframe cloud is voxelised in the odometry's upright frame (and stored in the sensor's
-    # as ever): each upright cell holds one stored point, one per cell the scan occupies.
-    # Without the pose the grid tilts with the sensor and its centroids share upright cells.
+    # tight keyframe's cloud is voxelised in the odometry's upright frame (and stored in the
+    # sensor's as ever): each upright cell holds one stored point, one per cell the scan
+    # occupies. Without the pose the grid tilts with the sensor and its centroids share
+    # upright cells. An open scene keeps the sensor's grid, pose or not.
     pytest.importorskip('small_gicp', reason='small-gicp is not installed')
     tilt = rpy_matrix(math.radians(10.0), math.radians(-6.0), 0.0)
     world = _box_room(np.random.default_rng(0)) + [0.11, 0.07, 0.03]  # walls off the grid
@@ -491,3 +492,11 @@ def test_a_tilted_keyframe_is_gridded_upright_when_its_pose_says_so() -> None:
     blind.process(scan, 0)
     points, cells = upright_cells(blind)
     assert cells < points
+    street = place(0) @ tilt
+    clouds = []
+    for given in (pose, None):
+        det = LoopDetector(cfg)
+        det.process(street, 0, given)
+        ((_, open_cloud),) = det.clouds.items()
+        clouds.append(open_cloud.points)
+    np.testing.assert_array_equal(*clouds)
