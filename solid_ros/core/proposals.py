@@ -45,7 +45,10 @@ after keyframe ``q - 1``):
   :func:`heading_tolerance_deg` (``graph_candidate_sigmas`` of the query's heading
   uncertainty plus 2 degrees): in a symmetric room the registration can also fit the place
   turned by 180 degrees (seen in the simulator), which only the descriptor's own evidence or
-  the graph tells apart, and a keyframe proposed by position has only the graph.
+  the graph tells apart, and a keyframe proposed by position has only the graph. Nor may it
+  move the query's view centre from where the graph put it (:func:`guess_deviation`) by more
+  than 1 m plus ``graph_candidate_sigmas`` of the query's sigma relative to the match: a
+  slide along a room's shelves (:func:`solid_ros.core.graph_hits.strayed_from_guess`).
 
 * Known place (:func:`knows_place`): a loop that puts the query's view centre where the
   graph predicted it, within one coarse voxel counting ``graph_candidate_sigmas`` sigmas of
@@ -75,9 +78,9 @@ from solid_ros.core.graphnoise import model_covariance
 if TYPE_CHECKING:
     from solid_ros.core.graphtypes import Keyframe
 
-__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'heading_tolerance_deg',
-           'knows_place', 'near_keyframes', 'position_sigma', 'search_radius',
-           'view_keyframes']
+__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'guess_deviation',
+           'heading_tolerance_deg', 'knows_place', 'near_keyframes', 'position_sigma',
+           'search_radius', 'view_keyframes']
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
