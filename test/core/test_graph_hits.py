@@ -71,7 +71,8 @@ def test_a_loop_the_graph_placed_may_not_stray_from_its_guess() -> None:
     slid, near, turned = guess.copy(), guess.copy(), guess.copy()
     slid[:3, 3] = [0.0, 2.1, 0.0]
     near[:3, 3] = [0.0, 0.22, 0.0]
-    # Turned about the sensor, the view centre 2 m ahead moves 2 m x sin(40 deg) = 1.29 m.
+    # Turned 40 deg about the sensor, the view centre 2 m ahead moves 2 x 2 m x sin(20 deg)
+    # = 1.37 m.
     turned[:3, :3] = rot_z(math.radians(40.0))
     assert strayed_from_guess(hit, centre, cfg, slid)
     assert not strayed_from_guess(hit, centre, cfg, near)
