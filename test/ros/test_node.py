@@ -192,6 +192,7 @@ class Harness:
         self.candidates: list[dict[str, Any]] = []
         self.markers: list[MarkerArray] = []
         self.diagnostics: list[DiagnosticArray] = []
+        self.late_subscriptions: list[Any] = []
         self.client.create_subscription(
             Float64MultiArray, '/solid_node/loop_candidates',
             lambda m: self.candidates.extend(decode_candidates(m)), qos)
@@ -257,12 +258,11 @@ class Harness:
         got: list[MarkerArray] = []
         qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        sub = self.client.create_subscription(MarkerArray, '/solid_node/loop_markers',
-                                              got.append, qos)
-        try:
-            self.wait_for(lambda: bool(got), 'latched markers', 10.0)
-        finally:
-            self.client.destroy_subscription(sub)
+        # Kept until close(): destroying it while the executor spins raced its wait set
+        # ('cannot use Destroyable', a thread exception seen in the suite).
+        self.late_subscriptions.append(self.client.create_subscription(
+            MarkerArray, '/solid_node/loop_markers', got.append, qos))
+        self.wait_for(lambda: bool(got), 'latched markers', 10.0)
         return got[0]
 
     def status(self) -> dict[str, str]:
