@@ -31,6 +31,9 @@ __all__ = ['LidarModel', 'PRESETS', 'avia_like', 'cast_scan', 'hdl64', 'ouster_l
            'sensor_model', 'vlp16_like']
 
 FloatArray = npt.NDArray[np.float64]
+# A neighbouring ray this much nearer or farther makes a depth edge (``edge_mixing``), metres.
+EDGE_GAP_M = 0.3
+_EDGE_JUMP = 4.0  # an edge's step over the step on its other side (see _mixed_pixels)
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,10 @@ class LidarModel:
         mount_pitch_deg: mounting pitch about the vehicle's +y axis, degrees (right hand:
             positive tips +x down). Level vehicle frame <- sensor frame is ``Ry(pitch)
             Rx(roll)``, the convention of the detector's ``mount_*_deg`` parameters.
+        edge_mixing: probability that a ray at a depth edge (a neighbouring ray, in its ring or
+            its column, returned ``EDGE_GAP_M`` nearer or farther) returns a mixed pixel: a
+            range drawn uniformly between its own and that neighbour's, a point floating in
+            free space (real sensors' footprints straddle edges; Livox's trail behind them).
     """
 
     name: str
@@ -77,6 +84,7 @@ class LidarModel:
     rate_hz: float = 10.0
     mount_roll_deg: float = 0.0
     mount_pitch_deg: float = 0.0
+    edge_mixing: float = 0.0
 
     def __post_init__(self) -> None:
         checks: list[tuple[str, Any, bool, str]] = [
@@ -99,6 +107,7 @@ class LidarModel:
              '[-45, 45]'),
             ('mount_pitch_deg', self.mount_pitch_deg, -45.0 <= self.mount_pitch_deg <= 45.0,
              '[-45, 45]'),
+            ('edge_mixing', self.edge_mixing, 0.0 <= self.edge_mixing <= 1.0, '[0, 1]'),
         ]
         for key, value, ok, allowed in checks:
             if not ok:
@@ -369,6 +378,8 @@ def _cast_level(scene: Scene, model: LidarModel, phi: FloatArray, alpha: FloatAr
     # (A, R) -> ring-major rays.
     s = dist.T
     r3 = s / np.cos(phi)[:, None]
+    if rng is not None and model.edge_mixing > 0.0:
+        r3 = _mixed_pixels(r3, model.edge_mixing, rng)
     valid = (r3 < model.max_range) & (r3 > model.min_range)
     if rng is not None and model.dropout > 0.0:
         valid &= rng.random(valid.shape, dtype=np.float32) >= model.dropout
@@ -383,6 +394,34 @@ def _cast_level(scene: Scene, model: LidarModel, phi: FloatArray, alpha: FloatAr
     xyz[:, 2] = rng_r * np.sin(phi)[ring]
     intensity: FloatArray = refl.T[ring, col]
     return xyz, intensity
+
+
+def _mixed_pixels(r3: FloatArray, p: float, rng: np.random.Generator) -> FloatArray:
+    """Ranges (rings x columns) with mixed pixels at depth edges (see ``edge_mixing``).
+
+    An edge is a jump: the range to one neighbour (in the ring or the column) changes by more
+    than ``EDGE_GAP_M`` and by ``_EDGE_JUMP`` times the change to the opposite neighbour, so
+    the ground's growing ring-to-ring steps are not edges.
+    """
+    r = np.where(np.isfinite(r3), r3, np.nan)
+    padded = np.pad(r, 1, constant_values=np.nan)
+    best = np.full(r.shape, np.nan)
+    gap = np.zeros(r.shape)
+    rows, cols = r.shape
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        nb = padded[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols]
+        opposite = padded[1 - dr:1 - dr + rows, 1 - dc:1 - dc + cols]
+        with np.errstate(invalid='ignore'):
+            diff = np.abs(nb - r)
+            other = np.nan_to_num(np.abs(opposite - r), nan=0.0)
+            edge = (diff > EDGE_GAP_M) & (diff > _EDGE_JUMP * other) & (diff > gap)
+        best = np.where(edge, nb, best)
+        gap = np.where(edge, diff, gap)
+    mixed = np.isfinite(best) & (rng.random(r.shape) < p)
+    out: FloatArray = r3.copy()
+    u = rng.random(int(mixed.sum()))
+    out[mixed] = r[mixed] + u * (best[mixed] - r[mixed])
+    return out
 
 
 def _hit_pairs(col: npt.NDArray[np.intp], prim: npt.NDArray[np.intp], s_in: FloatArray,

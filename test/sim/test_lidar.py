@@ -19,6 +19,7 @@ from solid_ros.sim import (
     simulate,
     vlp16_like,
 )
+from solid_ros.sim.scene import Scene
 
 
 def _to_world(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -141,3 +142,34 @@ def test_tilt_validation() -> None:
                    mount_roll_deg=2.0)
     with pytest.raises(ConfigError, match='points_per_ring'):
         avia_like(points_per_ring=1, mount_pitch_deg=2.0)
+
+
+def _shelf_before_wall() -> Scene:
+    """A shelf 2 m ahead of a wall 5 m ahead: a depth edge at each of the shelf's sides."""
+    boxes = np.array([[2.2, 0.0, 0.2, 0.6, 0.0, 0.0, 1.8],     # the shelf
+                      [5.2, 0.0, 0.2, 6.0, 0.0, 0.0, 3.0]])    # the wall
+    return Scene(None, boxes, np.full(2, 0.5), np.zeros((0, 5)), np.zeros(0))
+
+
+def test_edge_mixing_puts_points_between_the_surfaces_at_depth_edges() -> None:
+    scene, model = _shelf_before_wall(), avia_like(min_range=0.5, mount_height=1.4)
+    clean = cast_scan(scene, model, 0.0, 0.0, 0.0, np.random.default_rng(3))
+    mixed = cast_scan(scene, model.replace(edge_mixing=1.0), 0.0, 0.0, 0.0,
+                      np.random.default_rng(3))
+
+    def floating(cloud: np.ndarray) -> np.ndarray:
+        return scene.surface_distance(cloud[:, :3] + [0.0, 0.0, 1.4]) > 0.15
+
+    assert np.sum(floating(clean)) == 0
+    ghosts = mixed[floating(mixed)]
+    # At the shelf's sides and top, between the shelf's front (2 m) and the wall (5 m).
+    assert len(ghosts) > 50
+    assert np.all((ghosts[:, 0] > 1.9) & (ghosts[:, 0] < 5.1))
+    # Away from edges nothing changes: the ground and the wall's middle are not edges.
+    assert len(ghosts) < 0.1 * len(mixed)
+    # 0 keeps the scan as it was; the probability is validated.
+    np.testing.assert_array_equal(
+        clean, cast_scan(scene, model.replace(edge_mixing=0.0), 0.0, 0.0, 0.0,
+                         np.random.default_rng(3)))
+    with pytest.raises(ConfigError, match='edge_mixing'):
+        avia_like(edge_mixing=1.5)
