@@ -28,7 +28,10 @@ the sensor 1.4 m high and its near-field dead zone 0.5 m) counts a true loop wit
 1.0; its scans are tight (``verify_tight_range``), so it registers on 0.25 m keyframe clouds
 (0.75 m coarse); ``room_fine`` sets that grid by hand with the tight-space grid off;
 ``room_tilt`` holds the sensor as a hand does, its roll and pitch wandering by 8 deg (both
-poses carry the tilt, as a LiDAR-inertial odometry's would).
+poses carry the tilt, as a LiDAR-inertial odometry's would); ``room_edges`` and
+``room_tilt_edges`` give the sensor mixed pixels at half of the depth edges' rays
+(``edge_mixing``, :class:`~solid_ros.sim.lidar.LidarModel`): points floating between a near
+object and what lies behind it, as real sensors return.
 
 Drifting odometry (``--odometry drift``): the scans go through the product's
 :class:`~solid_ros.core.closure.LoopClosure` with the back end on, fed the simulator's drifting
@@ -40,6 +43,8 @@ graph_candidates=0`` turns them off for a before / after. Also printed per case:
 recall (:func:`solid_ros.tools.loops.revisits`: keyframes with an earlier one within 5 m after
 at least 30 m of reference path; the room: within 1.5 m and 45 deg after 8 m) and the loops
 the pose graph proposed (``graph``), with the verification time per keyframe (median, p95).
+In every mode: the median time to prepare a keyframe (``d_p50``: describe, keyframe cloud,
+and in a tight space its mixed pixels dropped).
 
 Usage: ``python test/bench/bench_generalisation.py [--sensors hdl64,avia_like]
 [--routes revisits] [--scenes lookalike] [--extras none|all|NAME,...] [--seed 0]
@@ -155,21 +160,28 @@ def extra_cases() -> dict[str, Case]:
         'room': indoor_case(),
         'room_fine': indoor_case(fine=True),
         'room_tilt': indoor_case(tilt_deg=8.0),
+        'room_edges': indoor_case(edge_mixing=0.5),
+        'room_tilt_edges': indoor_case(tilt_deg=8.0, edge_mixing=0.5),
     }
 
 
-def indoor_case(fine: bool = False, tilt_deg: float = 0.0) -> Case:
+def indoor_case(fine: bool = False, tilt_deg: float = 0.0, edge_mixing: float = 0.0) -> Case:
     """The handheld walk through the cluttered room with ``avia.yaml`` (its scans are tight:
     registered on 0.25 / 0.75 m, see ``verify_tight_range``; ``fine``: that grid set by hand,
     the tight-space grid off; ``tilt_deg``: the hand's roll and pitch, as in
-    :func:`~solid_ros.sim.trajectory.handheld_walk`)."""
+    :func:`~solid_ros.sim.trajectory.handheld_walk`; ``edge_mixing``: the sensor's mixed pixels
+    at depth edges, see :class:`~solid_ros.sim.lidar.LidarModel`)."""
     over = ({'verify_voxel_size': 0.25, 'verify_coarse_voxel_size': 0.75,
              'verify_tight_range': 0.0} if fine else {})
     name = ('avia_like/handheld/room' + ('@0.25m' if fine else '')
-            + (f'+tilt{tilt_deg:g}' if tilt_deg else ''))
-    # For the room, ``drive`` holds the walk's options.
+            + (f'+tilt{tilt_deg:g}' if tilt_deg else '')
+            + (f'+edges{edge_mixing:g}' if edge_mixing else ''))
+    # For the room, ``drive`` holds the walk's options and the sensor's edge_mixing.
+    drive: dict[str, Any] = {'tilt_deg': tilt_deg} if tilt_deg else {}
+    if edge_mixing:
+        drive['edge_mixing'] = edge_mixing
     return Case(name, 'avia_like', 'handheld', 'room', 'avia.yaml',
-                drive={'tilt_deg': tilt_deg} if tilt_deg else {}, overrides=over, radius=1.5,
+                drive=drive, overrides=over, radius=1.5,
                 max_heading_deg=45.0, revisit_radius=1.5, revisit_path_m=8.0)
 
 
@@ -187,8 +199,9 @@ def case_scans(case: Case, seed: int, scans: int | None, drift: str = 'default')
             yield scan.points, scan.stamp_ns, scan.pose, scan.odom
         return
     room = Room()
-    scene, walk = build_room(room, seed), handheld_walk(room, seed, **case.drive)
-    model = ROOM_SENSOR
+    walk_options = {k: v for k, v in case.drive.items() if k != 'edge_mixing'}
+    scene, walk = build_room(room, seed), handheld_walk(room, seed, **walk_options)
+    model = ROOM_SENSOR.replace(edge_mixing=case.drive.get('edge_mixing', 0.0))
     model_drift = DriveConfig(**DRIFTS[drift]).drift
     assert model_drift is not None
     noise = np.random.default_rng([seed, 0, 0x0D0]).standard_normal((len(walk), 3))
@@ -238,6 +251,7 @@ class Outcome:
     verify_ms: list[float] = field(default_factory=list)
     odometry: str = 'reference'
     keyframes_rows: list[dict[str, Any]] = field(default_factory=list)
+    describe_ms: list[float] = field(default_factory=list)
 
 
 def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None,
@@ -255,6 +269,7 @@ def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None,
     attempts: list[list[LoopCandidate]] = []
     published: set[int] = set()
     verify_ms: list[float] = []
+    describe_ms: list[float] = []
     t0 = time.perf_counter()
     for points, stamp_ns, pose, odom in case_scans(case, seed, scans, drift):
         if closure is not None:
@@ -266,10 +281,11 @@ def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None,
             attempts.append(list(res.attempts))
             published.update(id(c) for c in res.loops)
             verify_ms.append(res.times.verify)
+            describe_ms.append(res.times.describe)
     seconds = time.perf_counter() - t0
     scores, rows = score_case(case, cfg, np.asarray(poses), attempts, published)
     return Outcome(case, len(poses), scores, dict(det.reasons), seconds, rows, verify_ms,
-                   odometry, keyframe_rows(case, np.asarray(poses), rows))
+                   odometry, keyframe_rows(case, np.asarray(poses), rows), describe_ms)
 
 
 def keyframe_rows(case: Case, ref: np.ndarray, rows: list[dict[str, Any]]
@@ -343,7 +359,8 @@ def _fmt(value: float | None, spec: str) -> str:
 
 HEADER = (f'{"case":44s} {"kf":>5s} {"pos":>5s} {"pub":>4s} {"ok":>4s} {"false":>5s} '
           f'{"prec":>5s} {"recall":>6s} {"revis":>5s} {"rv_rec":>6s} {"graph":>5s} '
-          f'{"t_med":>6s} {"r_med":>6s} {"nees":>6s} {"v_p50":>5s} {"v_p95":>5s} {"s":>5s}  '
+          f'{"t_med":>6s} {"r_med":>6s} {"nees":>6s} {"d_p50":>5s} {"v_p50":>5s} {"v_p95":>5s} '
+          f'{"s":>5s}  '
           'verdicts')
 
 
@@ -353,6 +370,7 @@ def row_line(o: Outcome) -> str:
     rv = s['revisits']
     graph = s['by_source'].get('graph', {}).get('published', 0)
     v = np.asarray([t for t in o.verify_ms if math.isfinite(t)] or [math.nan])
+    d = np.asarray([t for t in o.describe_ms if math.isfinite(t)] or [math.nan])
     verdicts = ' '.join(f'{k}={v}' for k, v in sorted(o.reasons.items(), key=lambda kv: -kv[1]))
     return (f'{o.case.name:44s} {o.keyframes:5d} {s["queries_with_true_loop"]:5d} '
             f'{s["published"]:4d} {s["correct"]:4d} {s["false"]:5d} '
@@ -361,7 +379,8 @@ def row_line(o: Outcome) -> str:
             f'{_fmt(s["trans_err_m"]["median"], ".3f"):>6s} '
             f'{_fmt(s["rot_err_deg"]["median"], ".2f"):>6s} '
             f'{_fmt(s.get("nees_mean"), ".2f"):>6s} '
-            f'{np.median(v):5.1f} {np.percentile(v, 95):5.1f} {o.seconds:5.0f}  {verdicts}')
+            f'{np.median(d):5.1f} {np.median(v):5.1f} {np.percentile(v, 95):5.1f} '
+            f'{o.seconds:5.0f}  {verdicts}')
 
 
 def verdict(o: Outcome) -> list[str]:
