@@ -85,6 +85,7 @@ from solid_ros.core.geometry import (
     vector_to_matrix,
 )
 from solid_ros.core.graph_hits import (
+    STRAY_FLOOR_M,
     hit_knows_place,
     strayed_from_guess,
     turned_from_guess,
@@ -93,6 +94,7 @@ from solid_ros.core.graph_hits import (
 )
 from solid_ros.core.keyframes import CloudStore, KeyframeCloud
 from solid_ros.core.matching import estimate_yaw, heading_hypotheses
+from solid_ros.core.mixed_pixels import drop_mixed_pixels
 from solid_ros.core.mount import Mount
 from solid_ros.core.odometry import OdometryPath, disagreement
 from solid_ros.core.proposals import GraphHint
@@ -108,7 +110,7 @@ from solid_ros.core.results import (
     StageTimes,
 )
 from solid_ros.core.stamps import check_stamp
-from solid_ros.core.verification import TIGHT_GRID, Verification, Verifier
+from solid_ros.core.verification import TIGHT_GRID, CoarseResult, Verification, Verifier
 
 __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
            'Source', 'StageTimes']
@@ -316,9 +318,12 @@ class LoopDetector:
     def _keyframe_points(self, points: npt.ArrayLike, tight: bool = False,
                          up: FloatArray | None = None) -> FloatArray:
         """Range gate and FOV clip as for the descriptor, then the verification voxel grid
-        (``tight``: the tight-space one, see ``verify_tight_range``), laid out upright when
-        ``up`` (see :meth:`Mount.upright`; tight keyframes only)."""
+        (``tight``: the tight-space one, see ``verify_tight_range``, after dropping the scan's
+        mixed pixels, see :mod:`solid_ros.core.mixed_pixels`), laid out upright when ``up``
+        (see :meth:`Mount.upright`; tight keyframes only)."""
         gated = preprocess(points, self._gate_cfg)
+        if tight:  # near edges are everywhere in a tight space: their mixed pixels go
+            gated = drop_mixed_pixels(gated)
         voxel = (TIGHT_GRID if tight else 1.0) * self._config.verify_voxel_size
         if up is None:
             return voxel_downsample(gated, voxel)
@@ -594,7 +599,8 @@ class LoopDetector:
             if fine.verified and (self._odometry_refuses(proposal, hit.match,
                                                          self._mount.unlevel(fine.T))
                                   or turned_from_guess(hit, fine.T)
-                                  or strayed_from_guess(hit, centre, cfg, fine.T)):
+                                  or strayed_from_guess(hit, centre, cfg, fine.T,
+                                                        _stray_floor(c, verifier))):
                 fine = replace(fine, verified=False, reason='odometry', covariance=None)
             elif (fine.verified and hit.source == 'graph'
                   and not fine.constraint >= GRAPH_CONSTRAINT_FACTOR * cfg.verify_min_constraint):
@@ -697,6 +703,14 @@ def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
     return (f'no usable point: 0 of {n} points are finite and inside the range gate '
             f'({cfg.min_range:g} to {cfg.max_range:g} m), the FOV ({cfg.fov_width_deg:g} deg) '
             f'and max_distance ({cfg.max_distance:g} m)')
+
+
+def _stray_floor(coarse: CoarseResult, verifier: Verifier) -> float:
+    """How far beyond the graph's sigmas a loop may move the query from the graph's guess:
+    ``STRAY_FLOOR_M``, ``TIGHT_GRID`` of it for two tight-space keyframes (in the simulator's
+    rooms right loops lay within 0.3 m of the guess, slides along shelves 1.0-1.7 m)."""
+    tight = coarse.query is not None and coarse.query.settings == verifier.tight_settings
+    return STRAY_FLOOR_M * (TIGHT_GRID if tight else 1.0)
 
 
 def _same_place(a: Match, b: Match, hood: int) -> bool:

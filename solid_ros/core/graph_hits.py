@@ -132,17 +132,17 @@ def turned_from_guess(hit: Hit, T_mq: FloatArray) -> bool:
 
 
 def strayed_from_guess(hit: Hit, centre: FloatArray, config: SolidConfig,
-                       T_mq: FloatArray) -> bool:
+                       T_mq: FloatArray, floor_m: float = STRAY_FLOOR_M) -> bool:
     """Whether a loop the graph placed moves the query's view ``centre`` from the graph's
     guess by more than ``graph_candidate_sigmas`` of the query's sigma relative to the match
-    plus :data:`STRAY_FLOOR_M` (levelled frames)."""
+    plus ``floor_m`` (levelled frames; two tight-space keyframes pass a smaller one)."""
     if hit.guess is None:
         return False
     sigma = hit.sigma_m if hit.place_sigma is None else hit.place_sigma()
     if not math.isfinite(sigma):
         return False
     return (guess_deviation(hit.guess, T_mq, centre)
-            > STRAY_FLOOR_M + config.graph_candidate_sigmas * sigma)
+            > floor_m + config.graph_candidate_sigmas * sigma)
 
 
 def view_centre(cloud: FloatArray, mount: Mount) -> FloatArray:

@@ -47,8 +47,9 @@ after keyframe ``q - 1``):
   turned by 180 degrees (seen in the simulator), which only the descriptor's own evidence or
   the graph tells apart, and a keyframe proposed by position has only the graph. Nor may it
   move the query's view centre from where the graph put it (:func:`guess_deviation`) by more
-  than 1 m plus ``graph_candidate_sigmas`` of the query's sigma relative to the match: a
-  slide along a room's shelves (:func:`solid_ros.core.graph_hits.strayed_from_guess`).
+  than 1 m (0.5 m between two tight-space keyframes) plus ``graph_candidate_sigmas`` of the
+  query's sigma relative to the match: a slide along a room's shelves
+  (:func:`solid_ros.core.graph_hits.strayed_from_guess`).
 
 * Known place (:func:`knows_place`): a loop that puts the query's view centre where the
   graph predicted it, within one coarse voxel counting ``graph_candidate_sigmas`` sigmas of

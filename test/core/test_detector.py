@@ -463,6 +463,40 @@ def test_a_tight_space_keeps_its_cloud_on_the_tight_grid() -> None:
     assert [c.voxel for _, c in off.clouds.items()] == [cfg.verify_voxel_size]
 
 
+def test_a_tight_keyframe_leaves_out_the_mixed_pixels() -> None:
+    # The simulator's room, its sensor returning mixed pixels at half of the depth edges'
+    # rays: on the tight grid a voxel floating off every surface is one of them. The stored
+    # cloud keeps few of those the plain grid holds, and its surfaces all the same.
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    from solid_ros.core.descriptor import voxel_downsample
+    from solid_ros.sim import avia_like, cast_scan
+    from solid_ros.sim.scene import Room, build_room
+    from solid_ros.sim.trajectory import handheld_walk
+
+    room = Room()
+    scene, walk = build_room(room, 0), handheld_walk(room, 0)
+    x, y, yaw = float(walk.xy[40, 0]), float(walk.xy[40, 1]), float(walk.yaw[40])
+    model = avia_like(min_range=0.5, mount_height=1.4, edge_mixing=0.5)
+    scan = cast_scan(scene, model, x, y, yaw, np.random.default_rng(40))[:, :3]
+    cfg = SolidConfig.from_yaml(Path(__file__).parents[2] / 'config' / 'avia.yaml')
+    det = LoopDetector(cfg)
+    det.process(scan, 0)
+    ((_, cloud),) = det.clouds.items()
+    assert cloud.voxel == 0.5 * cfg.verify_voxel_size  # a tight space
+    plain = voxel_downsample(preprocess(scan, det._gate_cfg), cloud.voxel)
+
+    def off_surface(points: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        c, s = math.cos(yaw), math.sin(yaw)
+        world = points[:, :3] @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        return scene.surface_distance(world + [x, y, 1.4])
+
+    kept, before = off_surface(cloud.points.astype(np.float64)), off_surface(plain)
+    # Measured: 55 of the plain grid's 968 voxels lie 0.2 m or more off every surface, 5 of
+    # the 897 kept; 849 of its 852 on a surface (within 5 cm) stay.
+    assert np.sum(kept > 0.2) < 0.25 * np.sum(before > 0.2)
+    assert np.sum(kept < 0.05) > 0.97 * np.sum(before < 0.05)
+
+
 def test_a_tilted_keyframe_is_gridded_upright_when_its_pose_says_so() -> None:
     # A hand-held sensor rolled 10 and pitched -6 degrees in the box room. With its pose, the
     # tight keyframe's cloud is voxelised in the odometry's upright frame (and stored in the
@@ -500,3 +534,18 @@ def test_a_tilted_keyframe_is_gridded_upright_when_its_pose_says_so() -> None:
         ((_, open_cloud),) = det.clouds.items()
         clouds.append(open_cloud.points)
     np.testing.assert_array_equal(*clouds)
+
+
+def test_two_tight_keyframes_take_half_the_stray_floor() -> None:
+    from solid_ros.core.detector import _stray_floor
+    from solid_ros.core.graph_hits import STRAY_FLOOR_M
+    from solid_ros.core.registration import Query
+    from solid_ros.core.verification import CoarseResult, Verifier
+
+    v = Verifier(SolidConfig())
+    pts = np.zeros((3, 3))
+    tight = CoarseResult('k', None, None, None, Query(pts, v.tight_settings))
+    open_ = CoarseResult('k', None, None, None, Query(pts, v.settings))
+    assert _stray_floor(tight, v) == pytest.approx(0.5 * STRAY_FLOOR_M)
+    assert _stray_floor(open_, v) == STRAY_FLOOR_M
+    assert _stray_floor(CoarseResult('k', None, None, None), v) == STRAY_FLOOR_M
