@@ -76,7 +76,11 @@ rejection ``reason``):
    Right poses' far restarts land in worse places (less overlap or a worse fit, more
    conflict) and change nothing. Steps skip it: they start from the odometry.
 
-Passing all of them gives ``verified``. The detector may still refuse a verified loop that
+Passing all of them gives ``verified``, unless the loop's covariance (below, without
+``verify_covariance_scale``) puts two sigmas beyond what a right loop is in some direction
+(``PINNED_M``, ``PINNED_DEG``): then ``constraint``, the structure did not pin that direction
+(a hand-held sensor facing one wall, the ground out of view, leaves the roll about the wall's
+normal free). The detector may still refuse a verified loop that
 this session's odometry contradicts (``odometry``, see :mod:`solid_ros.core.detector`). A
 rejected candidate carries the scores of the tests it reached (the rest are NaN): the later
 measures cost the most and most candidates never need them.
@@ -139,6 +143,11 @@ KNOWN_PLACE_OVERLAP = 0.7
 # 10 deg, and the simulator's room gave headings 3-9 deg off that passed every test on it.
 TIGHT_GRID = 0.5
 _TIGHT_PERCENTILE = 90.0  # of a keyframe's horizontal ranges, against verify_tight_range
+# A loop is right within 1 m and 3 degrees (the issue's bar); one whose own covariance puts
+# two sigmas beyond it in some direction is not pinned there (a tilted hand-held sensor facing
+# one wall: nothing holds the roll about the wall's normal; the ground is out of view).
+PINNED_M = 1.0
+PINNED_DEG = 3.0
 _SOURCE_CACHE = 16  # prepared candidate clouds kept: consecutive queries hit the same places
 
 
@@ -362,7 +371,8 @@ class Verifier:
         tight = query.settings == self.tight_settings
         cov = support_covariance(sup, cfg.verify_covariance_scale,
                                  RESIDUAL_SCALE * (TIGHT_RESIDUAL if tight else 1.0))
-        if cov is None:
+        # Pinned by the calibrated covariance: a user's caution (the scale) changes no verdict.
+        if cov is None or not _pinned(cov / cfg.verify_covariance_scale):
             return _rejected('constraint', T_qm, **scores), sup
         return Verification(True, 'verified', _inv(T_qm), covariance=cov,
                             hypothesis=hyp, **scores), sup
@@ -422,6 +432,15 @@ class Verifier:
 def _same_grid(voxel: float, settings: RegistrationSettings) -> bool:
     """Whether a stored cloud's grid (0: the configuration's) is ``settings``' voxel."""
     return abs(voxel - settings.voxel) <= 1e-6 * settings.voxel
+
+
+def _pinned(cov: FloatArray) -> bool:
+    """Whether a loop's covariance (ROS order) keeps two sigmas inside what a right loop is
+    (``PINNED_M``, ``PINNED_DEG``) in every direction."""
+    t = float(np.linalg.eigvalsh(cov[:3, :3])[-1])
+    r = float(np.linalg.eigvalsh(cov[3:, 3:])[-1])
+    return (2.0 * math.sqrt(max(t, 0.0)) <= PINNED_M
+            and 2.0 * math.degrees(math.sqrt(max(r, 0.0))) <= PINNED_DEG)
 
 
 def _weak_direction(info: FloatArray) -> FloatArray:

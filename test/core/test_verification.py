@@ -465,9 +465,9 @@ def _room_scan(index: int) -> tuple[npt.NDArray[np.float32], FloatArray]:
     return cloud[:, :3], pose_matrix(x, y, model.mount_height, yaw)
 
 
-def _verify_room_pair(q: int, m: int, guesses: tuple[FloatArray, ...] = ()
-                      ) -> tuple[Any, float, float]:
-    cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
+def _verify_room_pair(q: int, m: int, guesses: tuple[FloatArray, ...] = (),
+                      cfg: SolidConfig | None = None) -> tuple[Any, float, float]:
+    cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml') if cfg is None else cfg
     (sq, pq), (sm, pm) = _room_scan(q), _room_scan(m)
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
                                              cfg.verify_hypotheses, cfg.heading_match)]
@@ -476,6 +476,35 @@ def _verify_room_pair(q: int, m: int, guesses: tuple[FloatArray, ...] = ()
     match = v.prepare(det._keyframe_points(sm)).keyframe_cloud()
     res = v.fine(query, v.coarse(query, 'm', match, yaws, guesses))
     return (res, *_errors(res.T, np.linalg.inv(pm) @ pq))
+
+
+@pytest.mark.parametrize(('axis', 'sigma', 'kept'), [
+    (3, math.radians(1.4), True), (3, math.radians(1.6), False),   # roll: 2 sigmas vs 3 deg
+    (2, 0.45, True), (2, 0.55, False)])                            # height: 2 sigmas vs 1 m
+def test_a_loop_its_own_covariance_does_not_pin_is_refused(
+        monkeypatch: pytest.MonkeyPatch, axis: int, sigma: float, kept: bool) -> None:
+    # A right loop is within 1 m and 3 deg; one whose covariance puts two sigmas beyond that
+    # in some direction is not pinned there: in the simulator's tilted room a hand-held scan
+    # facing one wall, the ground out of view, verified 3.7 deg off in roll (its sigma there
+    # 2.1 deg) while x, y and the heading were held.
+    import solid_ros.core.verification as verification
+
+    real = verification.support_covariance
+
+    def loose(*args: Any, **kwargs: Any) -> Any:
+        cov = real(*args, **kwargs)
+        if cov is not None:
+            cov = cov.copy()
+            cov[axis, axis] = sigma ** 2 * args[1]  # args[1]: verify_covariance_scale
+        return cov
+
+    monkeypatch.setattr(verification, 'support_covariance', loose)
+    res, _, _ = _verify_room_pair(119, 15)
+    assert res.verified is kept and res.reason == ('verified' if kept else 'constraint'), res
+    # The calibrated covariance decides: a user's cautious scale changes no verdict.
+    cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml').replace(verify_covariance_scale=4.0)
+    res4, _, _ = _verify_room_pair(119, 15, cfg=cfg)
+    assert res4.verified is kept
 
 
 def test_a_stationary_fine_registration_counts_as_converged() -> None:
