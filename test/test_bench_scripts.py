@@ -20,3 +20,11 @@ def test_bench_nees_scores_simulated_loops() -> None:
     out = _bench('bench_nees.py', '--sets', 'indoor', '--scans', '60')
     assert 'published loops' in out
     assert 'vs reference' in out and 'NEES 6-DoF mean' in out
+
+
+def test_bench_generalisation_runs_the_room_with_mixed_pixels() -> None:
+    out = _bench('bench_generalisation.py', '--sensors', '', '--extras', 'room_tilt_edges',
+                 '--scans', '60', '--odometry', 'drift', '--odom-check')
+    assert 'd_p50' in out
+    line = next(ln for ln in out.splitlines() if ln.startswith('avia_like/handheld/room'))
+    assert '+tilt8+edges0.5' in line and 'verified=' in line
