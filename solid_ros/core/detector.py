@@ -75,6 +75,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.covisibility import StructureIndex, coarse_structure
 from solid_ros.core.database import DescriptorDatabase, Match, unit_vector
 from solid_ros.core.descriptor import Descriptor, describe, preprocess, voxel_downsample
 from solid_ros.core.errors import CloudError, ConfigError
@@ -87,6 +88,7 @@ from solid_ros.core.geometry import (
 from solid_ros.core.graph_hits import (
     STRAY_FLOOR_M,
     hit_knows_place,
+    shared_hits,
     strayed_from_guess,
     turned_from_guess,
     view_centre,
@@ -159,6 +161,7 @@ class LoopDetector:
         # View centre (keyframe cloud centroid, sensor frame) of each own keyframe, by index,
         # for candidates by what they saw (solid_ros.core.proposals); written and read alike.
         self._views: dict[int, FloatArray] = {}
+        self._structures = StructureIndex(self._config.capacity)
         # Where clouds of other robots' keyframes come from (the node asks the owner); it
         # returns the cloud or the reason there is none. None: such candidates stay unverified.
         self.fetch_cloud: CloudFetcher | None = None
@@ -386,23 +389,36 @@ class LoopDetector:
 
         With a ``hint`` (the pose graph after the previous keyframe), ``graph_candidates`` on,
         verification on and an odometry pose for the keyframe, the keyframes near it in the
-        graph's estimate, or that saw its place, join the descriptor's candidates
-        (:mod:`solid_ros.core.proposals`; appended to ``proposal.hits``, source ``'graph'``),
-        and every candidate the graph places within ``graph_candidate_max_radius_m`` or
-        proposes by view is registered from the graph's relative pose first. They pass the
-        same tests.
+        graph's estimate, or that saw its place, or that share its structure, join the
+        descriptor's candidates (:mod:`solid_ros.core.proposals`,
+        :mod:`solid_ros.core.covisibility`; appended to ``proposal.hits``, source
+        ``'graph'``), and every candidate the graph places within
+        ``graph_candidate_max_radius_m`` or proposes by view or structure is registered from
+        the graph's relative pose first. They pass the same tests.
         """
         t0 = time.perf_counter()
         cfg = self._config
+        structure = None
+        if self.verifier is not None and proposal.query is None:
+            proposal.query = self.verifier.prepare(
+                proposal.cloud_points if proposal.cloud_points is not None
+                else np.zeros((0, 3)), proposal.tight)
+            structure = self._structure_of(proposal.query)
+        more: Callable[[], list[Hit]] | None = None
         if hint is not None and cfg.graph_candidates > 0 and self.verifier is not None:
             proposal.hits = with_graph_hits(proposal, hint, cfg, self.database, self._own_seqs,
                                             self._views, self._mount)
+            if structure is not None:
+                more = partial(shared_hits, proposal, hint, cfg, self.database,
+                               self._own_seqs, self._mount, self._structures, structure)
         gap_blocked = bool(cfg.min_loop_gap and self._last_loop_query is not None
                            and proposal.query_index - self._last_loop_query < cfg.min_loop_gap)
         if self.verifier is None:
             attempts = self._accept_by_descriptor(proposal, gap_blocked)
         else:
-            attempts = self._accept_by_registration(proposal, gap_blocked)
+            attempts = self._accept_by_registration(proposal, gap_blocked, more)
+        if structure is not None:  # after its own search: it shares all with itself
+            self._structures.add(proposal.query_index, structure)
         taken: list[LoopCandidate] = []
         for c in attempts:
             if c.reason not in ('verified', 'descriptor'):
@@ -506,14 +522,19 @@ class LoopDetector:
             out.append(c)
         return out
 
-    def _accept_by_registration(self, proposal: Proposal,
-                                gap_blocked: bool) -> list[LoopCandidate]:
+    def _accept_by_registration(self, proposal: Proposal, gap_blocked: bool,
+                                more: Callable[[], list[Hit]] | None = None
+                                ) -> list[LoopCandidate]:
+        """Verify the proposal's hits group by group until ``max_candidates`` places are
+        verified; ``more``: hits to try last, asked only if it comes to them."""
         verifier = self.verifier
         assert verifier is not None
         clouds, fetched = self._candidate_clouds(proposal, gap_blocked)
-        query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
-                                 else np.zeros((0, 3)), proposal.tight)
-        proposal.query = query
+        query = proposal.query
+        if query is None:
+            query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
+                                     else np.zeros((0, 3)), proposal.tight)
+            proposal.query = query
         if query.usable:
             self.clouds.put(proposal.seq, query.keyframe_cloud())
         self.clouds.drop_before(self.database.oldest_seq)
@@ -522,7 +543,8 @@ class LoopDetector:
         verified: list[Match] = []
         # The graph's near keyframes first: registered from its pose they mostly verify at
         # once, and the rest are then not needed (max_candidates); then those that saw the
-        # query's place from elsewhere, then the descriptor's others.
+        # query's place from elsewhere, then the descriptor's others, and last, asked only
+        # now, those that share the query's structure.
         hits = proposal.hits
         for group in ([i for i, h in enumerate(hits) if h.near],
                       [i for i, h in enumerate(hits) if h.view and not h.near],
@@ -530,6 +552,13 @@ class LoopDetector:
             if gap_blocked or len(verified) >= self._config.max_candidates:
                 break
             self._register(proposal, query, group, clouds, results, yaws, verified)
+        if more is not None and not gap_blocked and len(verified) < self._config.max_candidates:
+            extra = more()
+            start = len(hits)
+            hits = proposal.hits = hits + extra
+            clouds += [self.clouds.get(h.match.seq) for h in extra]
+            self._register(proposal, query, list(range(start, len(hits))), clouds, results,
+                           yaws, verified)
         out = []
         for i, hit in enumerate(hits):
             res = results.get(i)
@@ -600,7 +629,7 @@ class LoopDetector:
                                                          self._mount.unlevel(fine.T))
                                   or turned_from_guess(hit, fine.T)
                                   or strayed_from_guess(hit, centre, cfg, fine.T,
-                                                        _stray_floor(c, verifier))):
+                                                        _stray_floor(c))):
                 fine = replace(fine, verified=False, reason='odometry', covariance=None)
             elif (fine.verified and hit.source == 'graph'
                   and not fine.constraint >= GRAPH_CONSTRAINT_FACTOR * cfg.verify_min_constraint):
@@ -608,6 +637,15 @@ class LoopDetector:
             results[i] = fine
             if fine.verified:
                 verified.append(hit.match)
+
+    def _structure_of(self, query: Query) -> FloatArray:
+        """A prepared keyframe's structure on the configuration's coarse grid, sensor frame
+        (:func:`~solid_ros.core.covisibility.coarse_structure`; empty when unusable)."""
+        if not query.usable:
+            return np.zeros((0, 3))
+        out: FloatArray = self._mount.to_sensor(coarse_structure(
+            query.points, query.structure, self._config.verify_coarse_voxel_size))
+        return out
 
     def _loaded_sessions(self) -> set[int]:
         """Sessions loaded from a database file (their clouds came with it or not at all)."""
@@ -669,6 +707,7 @@ class LoopDetector:
         self._path.clear()
         self._own_seqs.clear()
         self._views.clear()
+        self._structures.clear()
 
     def save(self, path: str | Path,
              map_poses: Mapping[tuple[int, int], Any] | None = None) -> Path:
@@ -705,12 +744,14 @@ def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
             f'and max_distance ({cfg.max_distance:g} m)')
 
 
-def _stray_floor(coarse: CoarseResult, verifier: Verifier) -> float:
+def _stray_floor(coarse: CoarseResult) -> float:
     """How far beyond the graph's sigmas a loop may move the query from the graph's guess:
-    ``STRAY_FLOOR_M``, ``TIGHT_GRID`` of it for two tight-space keyframes (in the simulator's
-    rooms right loops lay within 0.3 m of the guess, slides along shelves 1.0-1.7 m)."""
-    tight = coarse.query is not None and coarse.query.settings == verifier.tight_settings
-    return STRAY_FLOOR_M * (TIGHT_GRID if tight else 1.0)
+    ``STRAY_FLOOR_M``, or two of the pair's fine voxels where that is less (two tight-space
+    keyframes, or a grid set finer by hand: in the simulator's rooms right loops lay within
+    0.3 m of the guess, slides along shelves 0.7-1.7 m)."""
+    if coarse.query is None:
+        return STRAY_FLOOR_M
+    return min(STRAY_FLOOR_M, 2.0 * coarse.query.settings.voxel)
 
 
 def _same_place(a: Match, b: Match, hood: int) -> bool:

@@ -74,8 +74,8 @@ class Mount:
         return up
 
     def to_sensor(self, point: FloatArray) -> FloatArray:
-        """A levelled-frame point (3-vector) in the sensor frame."""
-        out: FloatArray = self.R.T @ point if self.levelled else point
+        """A levelled-frame point (3-vector), or points (N, 3), in the sensor frame."""
+        out: FloatArray = point @ self.R if self.levelled else point
         return out
 
     def level_pose(self, T: FloatArray) -> FloatArray:

@@ -79,7 +79,7 @@ from solid_ros.core.graphnoise import model_covariance
 if TYPE_CHECKING:
     from solid_ros.core.graphtypes import Keyframe
 
-__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'guess_deviation',
+__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'eligible', 'guess_deviation',
            'heading_tolerance_deg', 'knows_place', 'near_keyframes', 'position_sigma',
            'search_radius', 'view_keyframes']
 
@@ -186,12 +186,15 @@ class GraphCandidate:
         stamp_ns: its stamp.
         distance_m: its distance from the query's predicted position, metres.
         T_mq: the graph's relative pose (query sensor in the keyframe's sensor frame).
+        share: for one proposed by shared structure, the share of the query's coarse
+            structure it holds (:mod:`solid_ros.core.covisibility`); NaN otherwise.
     """
 
     index: int
     stamp_ns: int
     distance_m: float
     T_mq: FloatArray
+    share: float = math.nan
 
 
 def position_sigma(covariance: npt.ArrayLike | None, config: SolidConfig,
@@ -302,8 +305,8 @@ def _largest(block: FloatArray) -> float:
     return max(float(np.linalg.eigvalsh(0.5 * (block + block.T))[-1]), 0.0)
 
 
-def _eligible(hint: GraphHint, query_index: int, stamp_ns: int, odom: FloatArray,
-              config: SolidConfig) -> npt.NDArray[np.bool_]:
+def eligible(hint: GraphHint, query_index: int, stamp_ns: int, odom: FloatArray,
+             config: SolidConfig) -> npt.NDArray[np.bool_]:
     """The keyframes outside the exclusion window with enough path driven since them."""
     path = hint.path_m[-1] + float(np.linalg.norm(odom[:3, 3] - hint.odom[-1, :3, 3]))
     ok: npt.NDArray[np.bool_] = hint.indices < query_index - config.exclude_recent_frames
@@ -336,7 +339,7 @@ def near_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
         return []
     odom = np.asarray(odom_pose, dtype=np.float64)
     predicted = hint.predict(odom)
-    ok = _eligible(hint, query_index, stamp_ns, odom, config)
+    ok = eligible(hint, query_index, stamp_ns, odom, config)
     dist = np.linalg.norm(hint.poses[:, :3, 3] - predicted[:3, 3], axis=1)
     ok &= dist <= search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom))
     return _nearest(hint, ok, dist, predicted, config.graph_candidates)
@@ -375,7 +378,7 @@ def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
     seen = np.einsum('nij,nj->ni', hint.poses[:, :3, :3], centres) + hint.poses[:, :3, 3]
     with np.errstate(invalid='ignore'):
         dist = np.linalg.norm(seen - (predicted[:3, :3] @ c_q + predicted[:3, 3]), axis=1)
-    ok = _eligible(hint, query_index, stamp_ns, odom, config) & np.isfinite(dist)
+    ok = eligible(hint, query_index, stamp_ns, odom, config) & np.isfinite(dist)
     ok &= dist <= search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom),
                                 c_q, extent)
     if bool(np.any(ok & np.isin(hint.indices, np.asarray(near, dtype=np.int64)))):

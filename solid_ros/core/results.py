@@ -105,7 +105,8 @@ class Hit:
     pose graph's (added by ``verify``); ``guess`` is the graph's ``T_mq`` in the levelled
     frames, the first start of the coarse registration (None: the graph has none); ``near``:
     among the keyframes near the query in the graph's estimate (verified first); ``view``:
-    among those whose view centre lies near the query's (verified next);
+    among those whose view centre lies near the query's (verified next); ``shared``: among
+    those that share the query's coarse structure in the graph's estimate (verified last);
     ``heading_tol_deg``: how far a loop the graph proposed may turn from the guess;
     ``sigma_m``: the query's position sigma in the graph, its view centre as the lever;
     ``place_sigma``: the same relative to the match keyframe, asked of the graph only when
@@ -121,6 +122,7 @@ class Hit:
     view: bool = False
     sigma_m: float = math.inf
     place_sigma: Callable[[], float] | None = None
+    shared: bool = False
 
 
 @dataclass(frozen=True)

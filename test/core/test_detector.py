@@ -536,16 +536,21 @@ def test_a_tilted_keyframe_is_gridded_upright_when_its_pose_says_so() -> None:
     np.testing.assert_array_equal(*clouds)
 
 
-def test_two_tight_keyframes_take_half_the_stray_floor() -> None:
+def test_a_finer_grid_takes_a_smaller_stray_floor() -> None:
     from solid_ros.core.detector import _stray_floor
     from solid_ros.core.graph_hits import STRAY_FLOOR_M
     from solid_ros.core.registration import Query
     from solid_ros.core.verification import CoarseResult, Verifier
 
-    v = Verifier(SolidConfig())
     pts = np.zeros((3, 3))
+    v = Verifier(SolidConfig())  # 0.5 m voxels: two tight-space keyframes register on 0.25 m
     tight = CoarseResult('k', None, None, None, Query(pts, v.tight_settings))
     open_ = CoarseResult('k', None, None, None, Query(pts, v.settings))
-    assert _stray_floor(tight, v) == pytest.approx(0.5 * STRAY_FLOOR_M)
-    assert _stray_floor(open_, v) == STRAY_FLOOR_M
-    assert _stray_floor(CoarseResult('k', None, None, None), v) == STRAY_FLOOR_M
+    assert _stray_floor(tight) == pytest.approx(0.5 * STRAY_FLOOR_M)
+    assert _stray_floor(open_) == STRAY_FLOOR_M
+    assert _stray_floor(CoarseResult('k', None, None, None)) == STRAY_FLOOR_M
+    # A grid set finer by hand too; a coarser one (hdl64.yaml, 0.75 m) keeps the floor.
+    fine = Verifier(SolidConfig().replace(verify_voxel_size=0.25)).settings
+    coarse = Verifier(SolidConfig().replace(verify_voxel_size=0.75)).settings
+    assert _stray_floor(CoarseResult('k', None, None, None, Query(pts, fine))) == 0.5
+    assert _stray_floor(CoarseResult('k', None, None, None, Query(pts, coarse))) == 1.0
