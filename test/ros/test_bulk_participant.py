@@ -9,7 +9,6 @@ import os
 import random
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -27,6 +26,7 @@ from rclpy.qos import (  # noqa: E402
     ReliabilityPolicy,
 )
 from sensor_msgs.msg import PointCloud2  # noqa: E402
+from spinning import Spinner  # noqa: E402
 from std_msgs.msg import Int32  # noqa: E402
 
 from solid_ros.ros.bulk_participant import BulkParticipant  # noqa: E402
@@ -51,12 +51,10 @@ def contexts() -> Iterator[list[Context]]:
         ctx.try_shutdown()
 
 
-def _spin(node: Node) -> tuple[SingleThreadedExecutor, threading.Thread]:
+def _spin(node: Node) -> Spinner:
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    return executor, thread
+    return Spinner(executor)
 
 
 def _wait(pred: Any, what: str) -> None:
@@ -80,14 +78,13 @@ def test_topics_take_the_owner_names_and_a_late_subscriber_gets_the_latched_samp
     got: list[int] = []
     owner.create_subscription(Int32, '/robot1/owner/map', lambda m: got.append(m.data),
                               LATCHED)
-    executor, thread = _spin(owner)
+    spinner = _spin(owner)
     try:
         _wait(lambda: got == [7], 'the latched sample')
         names = {i.node_name for i in owner.get_publishers_info_by_topic('/robot1/owner/map')}
         assert names == {'owner_bulk'}
     finally:
-        executor.shutdown()
-        thread.join(timeout=10.0)
+        spinner.stop()
         bulk.close()
         bulk.close()  # idempotent: BackendIO.stop may come twice
         owner.destroy_node()

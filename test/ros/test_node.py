@@ -11,7 +11,6 @@ import array
 import os
 import random
 import re
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -35,6 +34,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy_msgs import make_cloud  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
+from spinning import Spinner  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
@@ -203,8 +203,7 @@ class Harness:
         self.executor = MultiThreadedExecutor(num_threads=3, context=ctx)
         self.executor.add_node(self.node)
         self.executor.add_node(self.client)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
         if matched:
             self.wait_for(lambda: self.pub_points.get_subscription_count() > 0,
                           'points matched')
@@ -275,10 +274,7 @@ class Harness:
             'message': st.message}
 
     def close(self) -> None:
-        self.executor.shutdown()
-        # The spin thread must be out of its wait set before the nodes go: destroying them
-        # first raced it ('cannot use Destroyable', seen once in CI).
-        self.thread.join(timeout=10.0)
+        self.spinner.stop()  # out of the wait set before the nodes go
         self.node.destroy_node()
         self.client.destroy_node()
 

@@ -22,6 +22,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from spinning import Spinner  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from solid_ros.core.persistence import is_database  # noqa: E402
@@ -62,8 +63,7 @@ def test_save_path_read_only_and_never_replaces_other_files(context: Context,
     executor = MultiThreadedExecutor(num_threads=2, context=context)
     executor.add_node(node)
     executor.add_node(client)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
+    spinner = Spinner(executor)
     try:
         refused = _call(client, Trigger, '/solid_node/save_database', Trigger.Request())
         assert not refused.success and 'not a solid_ros database' in refused.message
@@ -81,7 +81,6 @@ def test_save_path_read_only_and_never_replaces_other_files(context: Context,
         assert saved.success, saved.message
         assert is_database(text) and not other.exists()
     finally:
-        executor.shutdown()
-        thread.join(timeout=10.0)  # out of the wait set before the nodes go
+        spinner.stop()  # out of the wait set before the nodes go
         node.destroy_node()
         client.destroy_node()

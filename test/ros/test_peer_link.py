@@ -31,6 +31,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy_msgs import make_cloud  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
+from spinning import Spinner  # noqa: E402
 from std_msgs.msg import Float64MultiArray, UInt8MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -89,8 +90,7 @@ class Fleet:
         self.loops: dict[int, list[dict[str, Any]]] = {}
         self.executor = MultiThreadedExecutor(num_threads=4, context=ctx)
         self.executor.add_node(self.client)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self.spinner = Spinner(self.executor)
 
     def add(self, robot: int, **extra: Any) -> SolidNode:
         node = SolidNode(context=self.ctx, cli_args=['--ros-args', '-r', f'__ns:=/r{robot}'],
@@ -131,8 +131,7 @@ class Fleet:
         self.wait_for(lambda: len(self.loops[robot]) >= node.stats.loops, 'all loops')
 
     def close(self) -> None:
-        self.executor.shutdown()
-        self.thread.join(timeout=10.0)  # out of the wait set before the nodes go
+        self.spinner.stop()  # out of the wait set before the nodes go
         for node in self.nodes.values():
             node.destroy_node()
         self.client.destroy_node()

@@ -414,7 +414,6 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
     import os
     import random
     import sys
-    import threading
     import time
 
     rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
@@ -425,6 +424,7 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy_msgs import make_cloud
     from sensor_msgs.msg import PointCloud2
+    from spinning import Spinner
     from std_msgs.msg import Float64MultiArray
 
     from solid_ros.core.geometry import matrix_to_quaternion
@@ -470,8 +470,7 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
         executor = MultiThreadedExecutor(num_threads=3, context=ctx)
         executor.add_node(node)
         executor.add_node(client)
-        thread = threading.Thread(target=executor.spin, daemon=True)
-        thread.start()
+        spinner = Spinner(executor)
 
         def wait(pred, what: str, timeout: float = 120.0) -> None:  # type: ignore[no-untyped-def]
             deadline = time.monotonic() + timeout
@@ -491,10 +490,9 @@ def _node_candidates(bag: Path, params: Path) -> list[tuple[int, int, int, int, 
             assert node.wait_idle(120.0)
             wait(lambda: len(got) >= node.stats.loops, 'every published candidate')
         finally:
-            executor.shutdown()
+            spinner.stop()  # out of the wait set before the nodes go
             node.destroy_node()
             client.destroy_node()
-            thread.join(timeout=10.0)
     finally:
         rclpy.try_shutdown(context=ctx)
         sys.setswitchinterval(old_interval)
