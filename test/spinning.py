@@ -10,6 +10,7 @@ leaves before anything is shut down or destroyed.
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 from rclpy.executors import ExternalShutdownException
@@ -36,8 +37,20 @@ class Spinner:
                 return
 
     def stop(self) -> None:
-        """Let the thread finish its round and leave, then shut the executor down; the
-        executor's nodes may then be destroyed."""
+        """Let the thread finish its round and leave, wait for the callbacks still running,
+        then shut the executor down; the executor's nodes may then be destroyed."""
         self._stop.set()
         self.thread.join(timeout=10.0)
+        # A MultiThreadedExecutor hands callbacks to a thread pool, and shutdown() does not
+        # wait for them: a node destroyed under one fails it ('cannot use Destroyable',
+        # reported as an exception never retrieved).
+        deadline = time.monotonic() + 10.0
+        failed = None
+        for task in list(getattr(self.executor, '_futures', ())):
+            while not task.done() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            if task.done() and task.exception() is not None:
+                failed = failed or task.exception()
         self.executor.shutdown()
+        if failed is not None:  # a callback failed: the test's to report
+            raise failed
