@@ -161,7 +161,10 @@ class LoopDetector:
         # View centre (keyframe cloud centroid, sensor frame) of each own keyframe, by index,
         # for candidates by what they saw (solid_ros.core.proposals); written and read alike.
         self._views: dict[int, FloatArray] = {}
-        self._structures = StructureIndex(self._config.capacity)
+        # Coarse structure of each own keyframe, for candidates by what they share
+        # (solid_ros.core.covisibility): kept only with the back end, for as many keyframes as
+        # clouds (a keyframe without its cloud cannot be verified), a tenth of their size.
+        self._structures = StructureIndex(self._config.cloud_capacity)
         # Where clouds of other robots' keyframes come from (the node asks the owner); it
         # returns the cloud or the reason there is none. None: such candidates stay unverified.
         self.fetch_cloud: CloudFetcher | None = None
@@ -403,7 +406,8 @@ class LoopDetector:
             proposal.query = self.verifier.prepare(
                 proposal.cloud_points if proposal.cloud_points is not None
                 else np.zeros((0, 3)), proposal.tight)
-            structure = self._structure_of(proposal.query)
+            if cfg.backend and cfg.graph_candidates > 0:  # only the back end's hint uses it
+                structure = self._structure_of(proposal.query)
         more: Callable[[], list[Hit]] | None = None
         if hint is not None and cfg.graph_candidates > 0 and self.verifier is not None:
             proposal.hits = with_graph_hits(proposal, hint, cfg, self.database, self._own_seqs,

@@ -68,13 +68,12 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     odom = vector_to_matrix(proposal.pose)
     near = near_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, cfg)
     close = {c.index for c in near}
+    own = _Placing(proposal, hint, cfg, mount)
     seen: list[GraphCandidate] = []
-    if len(proposal.cloud_points):
-        seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom,
-                              view_centre(proposal.cloud_points, mount),
+    if own.centre is not None:
+        seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, own.centre,
                               extent(proposal.cloud_points), views, cfg, sorted(close))
     viewed = {c.index for c in seen}
-    own = _Placing(proposal, hint, cfg, mount)
     hits = []
     for h in proposal.hits:
         T = own.guess(h, viewed)
@@ -113,14 +112,14 @@ def shared_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     if (proposal.pose is None or proposal.cloud_points is None or proposal.tight
             or not len(proposal.cloud_points) or not len(structure)):
         return []
-    if not float(np.linalg.norm(view_centre(proposal.cloud_points, mount))) > extent(
-            proposal.cloud_points):
+    own = _Placing(proposal, hint, cfg, mount)
+    assert own.centre is not None
+    if not float(np.linalg.norm(own.centre)) > extent(proposal.cloud_points):
         return []
     taken = {h.match.index for h in proposal.hits if h.match.session == cfg.session_id}
     found = structures.shared(hint, proposal.query_index, proposal.stamp_ns,
                               vector_to_matrix(proposal.pose), structure, cfg, sorted(taken))
-    return _Placing(proposal, hint, cfg, mount).hits([(c, 'shared') for c in found], taken,
-                                                     database, own_seqs)
+    return own.hits([(c, 'shared') for c in found], taken, database, own_seqs)
 
 
 class _Placing:
