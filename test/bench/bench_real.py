@@ -1,0 +1,136 @@
+"""Loop closure on the real recordings in ``../shared/data``: the bench every acceptance change
+is judged on first.
+
+Per recording (``hku1``: Livox Avia, a loop; ``quickshack``: Avia hand-held in a tight space,
+no revisit; ``riv281``: Ouster OS1-64 on a car, 2.4 km, no revisit) it replays the bag with
+the shipped preset nearest its sensor and drifting odometry (KISS-ICP over the clouds; the
+bag's odometry is the reference trajectory itself, ``--odometry bag`` uses it anyway), scores
+every candidate against the reference poses and prints:
+
+- ``loops``: published loops, how many are false (pose beyond 1 m / 3 deg of the reference
+  relative pose), and the precision;
+- ``revisit``: revisiting keyframes (an earlier keyframe within 5 m after 30 m of path) with a
+  right loop (:func:`solid_ros.tools.loops.revisits`);
+- ``right refused``: candidates whose (rejected) pose lies within 1 m / 3 deg of the
+  reference, by the reason that refused them, and how many right poses there were: a test
+  that refuses many right poses is too strict for this sensor and scene;
+- ``ATE``: odometry and corrected keyframe ATE; ``verify``: median and p95 ms per keyframe;
+  ``scans/s``: the whole replay, start-up included.
+
+``--out DIR`` keeps each replay's output directory (``DIR/<recording>``: candidates.csv,
+report.json), so ``compare_replays.py`` can tell whether a change kept the behaviour.
+``--report FILE.json`` writes the figures with the date and commit, for ``doc/``.
+
+Usage: ``python test/bench/bench_real.py [--sets hku1,quickshack,riv281] [--odometry
+kiss-icp|bag] [--out DIR] [--report FILE] [--set KEY=VALUE ...]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from solid_ros.tools.replay import _overrides, load_config, replay  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from report import bench_meta  # noqa: E402
+
+DATA = ROOT.parent / 'shared' / 'data'
+# Recording -> the shipped preset nearest its sensor.
+PRESETS = {'hku1': 'avia.yaml', 'quickshack': 'avia.yaml', 'riv281': 'hdl64.yaml'}
+MAX_M, MAX_DEG = 1.0, 3.0
+
+
+def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any]) -> dict[str, Any]:
+    """Replay one recording and score it."""
+    cfg, ncfg = load_config(ROOT / 'config' / PRESETS[name], overrides=sets)
+    rec = DATA / name
+    t0 = time.perf_counter()
+    r = replay(rec / 'bag', cfg, node_config=ncfg, odometry=odometry,
+               poses=rec / 'optimized_poses.txt', times=rec / 'times.txt', progress='quiet',
+               out_dir=None if out is None else out / name, plots=False)
+    wall = time.perf_counter() - t0
+    loops, traj = r.report['loops'], r.report['trajectory']
+    right = [x for x in r.scores.records if x.correct(MAX_M, MAX_DEG)]
+    refused = Counter(x.reason for x in right if not x.published)
+    verify = np.array([res.times.verify for res in r.log.results if res.keyframe])
+    verify = verify[np.isfinite(verify)]
+    return {
+        'preset': PRESETS[name], 'odometry': odometry, 'clouds': r.inputs.count,
+        'keyframes': sum(1 for res in r.log.results if res.keyframe),
+        'published': loops['published'], 'false': loops['false'],
+        'precision': loops.get('precision'), 'revisits': loops['revisits'],
+        'right_poses': len(right), 'right_refused': dict(refused.most_common()),
+        'ate_odometry_m': traj['odometry']['ate_m'],
+        'ate_corrected_m': traj['corrected']['ate_m'],
+        'verify_p50_ms': float(np.median(verify)) if len(verify) else math.nan,
+        'verify_p95_ms': float(np.percentile(verify, 95)) if len(verify) else math.nan,
+        'scans_per_s': r.inputs.count / wall, 'wall_s': wall,
+    }
+
+
+def lines(name: str, s: dict[str, Any]) -> list[str]:
+    """The figures of one recording as printed lines."""
+    rv = s['revisits']
+    recall = (f'{rv["found"]}/{rv["revisiting"]} = {rv["recall"]:.3f}' if rv['revisiting']
+              else 'none (no revisit)')
+    refused = ', '.join(f'{k} {v}' for k, v in s['right_refused'].items()) or 'none'
+    prec = s['precision']
+    return [
+        f'{name} ({s["preset"]}, odometry {s["odometry"]}): {s["keyframes"]} keyframes of '
+        f'{s["clouds"]} clouds',
+        f'  loops          {s["published"]} published, {s["false"]} false, precision '
+        f'{"-" if prec is None else f"{prec:.3f}"}',
+        f'  revisit recall {recall}',
+        f'  right refused  {sum(s["right_refused"].values())} of {s["right_poses"]} right '
+        f'poses: {refused}',
+        f'  ATE            odometry {_m(s["ate_odometry_m"])}, corrected '
+        f'{_m(s["ate_corrected_m"])}',
+        f'  cost           verify p50 {s["verify_p50_ms"]:.1f} ms, p95 '
+        f'{s["verify_p95_ms"]:.1f} ms per keyframe; {s["scans_per_s"]:.1f} scans/s '
+        f'({s["wall_s"]:.1f} s)',
+    ]
+
+
+def _m(value: float | None) -> str:
+    return '-' if value is None or not math.isfinite(value) else f'{value:.3f} m'
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument('--sets', default=','.join(PRESETS))
+    p.add_argument('--odometry', choices=('kiss-icp', 'bag'), default='kiss-icp')
+    p.add_argument('--out', type=Path, help='keep each replay output in OUT/<recording>')
+    p.add_argument('--report', type=Path, help='write the figures as JSON here')
+    p.add_argument('--set', nargs='+', action='extend', default=[], metavar='KEY=VALUE',
+                   help='override preset parameters (all recordings)')
+    args = p.parse_args()
+    if not DATA.is_dir():
+        print(f'bench_real: {DATA} is missing: nothing to run')
+        return 0
+    sets = _overrides(args.set)
+    figures = {}
+    for name in args.sets.split(','):
+        figures[name] = run(name, args.odometry, args.out, sets)
+        print('\n'.join(lines(name, figures[name])), flush=True)
+    if args.report is not None:
+        args.report.parent.mkdir(parents=True, exist_ok=True)
+        meta = bench_meta('bench_real', vars(args) | {'sets': args.sets.split(',')})
+        args.report.write_text(json.dumps(meta | {'recordings': figures}, indent=1,
+                                          default=str) + '\n')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

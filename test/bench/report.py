@@ -1,0 +1,41 @@
+"""What every bench report carries besides its figures: when, on which commit, on what machine.
+
+``doc/`` quotes figures only from reports the bench scripts write, so each says where it came
+from: the date, the commit (and whether the tree had uncommitted changes), the command and the
+load of this shared machine while it ran.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _git(*args: str) -> str:
+    try:
+        out = subprocess.run(['git', *args], cwd=ROOT, capture_output=True, text=True,
+                             check=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return ''
+    return out.stdout.strip()
+
+
+def bench_meta(bench: str, options: dict[str, Any]) -> dict[str, Any]:
+    """The header of a bench report: bench name, date, commit, command, machine."""
+    return {
+        'bench': bench,
+        'date': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
+        'commit': _git('rev-parse', '--short', 'HEAD'),
+        'dirty': bool(_git('status', '--porcelain', '--untracked-files=no')),
+        'command': ' '.join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        'options': {k: str(v) if isinstance(v, Path) else v for k, v in options.items()},
+        'machine': f'{platform.machine()}, {os.cpu_count()} cores, load '
+                   f'{os.getloadavg()[0]:.1f}',
+    }
