@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from solid_ros.core.config import NodeConfig, SolidConfig
-from solid_ros.core.descriptor import Descriptor, describe
-from solid_ros.core.detector import LoopCandidate, LoopDetector
+from solid_ros.core.descriptor.matching import cosine_distance, estimate_yaw
+from solid_ros.core.descriptor.solid import describe
 from solid_ros.core.errors import (
     BagError,
     CloudError,
@@ -13,7 +13,8 @@ from solid_ros.core.errors import (
     PoseError,
     SolidError,
 )
-from solid_ros.core.matching import cosine_distance, estimate_yaw
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.results import Descriptor, LoopCandidate
 
 __all__ = [
     'BagError', 'CloudError', 'ConfigError', 'DatabaseError', 'Descriptor', 'LoopCandidate',

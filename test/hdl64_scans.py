@@ -9,7 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopDetector
+from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.sim.drive import Drive, DriveConfig
 
 FloatArray = npt.NDArray[np.float64]

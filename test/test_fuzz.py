@@ -34,9 +34,9 @@ import pytest
 from project_paths import CONFIG_DIR
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopDetector
+from solid_ros.core.database.persistence import FORMAT, check_save_target, save_database
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError
-from solid_ros.core.persistence import FORMAT, check_save_target, save_database
+from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.formats.bags import write_cloud_bag
 from solid_ros.formats.pointcloud2 import FLOAT32, FLOAT64, cloud_to_xyz
 from solid_ros.ros.cli import check_parameter_files, scan_arguments
@@ -556,7 +556,7 @@ def test_fuzz_through_the_executables(tmp_path: Path, sources: dict[str, Path]) 
 def test_fuzz_peer_messages(capsys: pytest.CaptureFixture[str]) -> None:
     """Damaged peer messages, plain or sealed: decoding refuses them with PeerMessageError
     (or reads a valid message); with a fleet key not one damaged envelope opens."""
-    from solid_ros.core.keyframes import KeyframeCloud
+    from solid_ros.core.database.clouds import KeyframeCloud
     from solid_ros.formats.peers import (
         CatchUpRequest,
         CloudReply,

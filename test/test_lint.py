@@ -28,7 +28,7 @@ def test_ruff_clean() -> None:
 
 def test_mypy_strict_core() -> None:
     modules = _core_modules()
-    assert 'solid_ros/core/descriptor.py' in modules
+    assert 'solid_ros/core/descriptor/solid.py' in modules
     proc = subprocess.run([str(BIN / 'mypy'), '--strict', '--no-error-summary', *modules],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -251,7 +251,8 @@ class SolidConfig(_Schema):
     mount_yaw_deg: float = _p(0.0, 'Sensor yaw in the level body frame, degrees', low=-180.0,
                               high=180.0, shape=True)
 
-    # Geometric verification (registration with small_gicp; see solid_ros.core.verification).
+    # Geometric verification (registration with small_gicp; see
+    # solid_ros.core.verification.verifier).
     verify: bool = _p(True, 'Verify candidates by registration and publish only verified loops '
                       'with a 6-DoF pose (false: descriptor-only candidates, yaw only)',
                       read_only=True)
@@ -332,7 +333,7 @@ class SolidConfig(_Schema):
     cloud_memory_mb: float = _p(1024.0, 'Memory limit of the keyframe clouds, MB; the oldest is '
                                 'dropped beyond it', low=0.0, high=1e6, read_only=True)
 
-    # Back end: a pose graph on gtsam iSAM2 (solid_ros.core.posegraph); not shape settings.
+    # Back end: a pose graph on gtsam iSAM2 (solid_ros.core.backend.posegraph); not shape settings.
     backend: bool = _p(False, 'Close the loop in a pose graph (gtsam iSAM2): corrected keyframe '
                        'poses, map->odom, relocalisation in a loaded map (needs pip install '
                        'gtsam)', read_only=True)
@@ -468,7 +469,7 @@ class NodeConfig(_Schema):
                                  's; e.g. lio_loop/loop_closure_detection); empty = off',
                                  read_only=True)
 
-    # Odometry source; KISS-ICP's settings (solid_ros.core.kiss_odometry).
+    # Odometry source; KISS-ICP's settings (solid_ros.core.odometry.kiss).
     odometry_source: str = _p('topic', "Pose of each cloud: 'topic' (the odom subscription, a "
                               "bag's Odometry or a poses file) or 'kiss_icp' (KISS-ICP "
                               'registers the clouds; pip install kiss-icp)',

@@ -1,6 +1,6 @@
 """Why a candidate was or was not published: one typed vocabulary for every module.
 
-The verification tests (:mod:`solid_ros.core.verification`) name their rejections; the
+The verification tests (:mod:`solid_ros.core.verification.verifier`) name their rejections; the
 detector adds ``'descriptor'`` (accepted without verification), ``'best'`` (the nearest stored
 scan, listed for evaluation only) and ``'odometry'`` (this session's odometry contradicts
 the loop); fetching another robot's keyframe cloud can fail with the three ``peer_*`` reasons.

@@ -1,35 +1,85 @@
-"""What the detector hands on: the loop candidates, a keyframe's proposal and its result.
+"""The records that flow between the rooms of the core: every result type is imported from here.
 
-:class:`Proposal` is the descriptor stage's output (``LoopDetector.propose``), :class:`Hit`
-one candidate in it,
-:class:`ScanResult` what verification made of the keyframe and :class:`LoopCandidate` one
-loop, published or only attempted (the README's conventions: ``T`` maps the query sensor
-frame into the match's; covariance in ROS order with a right perturbation).
+A scan's :class:`Descriptor`; a stored scan a search returned (:class:`Match`); one loop,
+published or only attempted (:class:`LoopCandidate`: ``T`` maps the query sensor frame into
+the match's, covariance in ROS order with a right perturbation; see the README's conventions);
+what one scan gave (:class:`ScanResult`, with :class:`StageTimes`); and what the pose-graph
+back end did with a keyframe (:class:`Keyframe`, :class:`LoopOutcome`, :class:`BackendEvent`,
+:class:`BackendState`). Plain frozen dataclasses of numbers and numpy arrays: this module
+imports nothing of the core beyond the base modules.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.database import Match
-from solid_ros.core.descriptor import Descriptor
 from solid_ros.core.geometry import vector_to_matrix
 from solid_ros.core.reasons import Reason
-from solid_ros.core.registration import Query
 
-__all__ = ['IDENTITY_POSE', 'NAN_COV', 'Hit', 'LoopCandidate', 'Proposal', 'ScanResult',
-           'Source', 'StageTimes']
+__all__ = ['ACCEPTED', 'IDENTITY_POSE', 'NAN_COV', 'BackendEvent', 'BackendState',
+           'Descriptor', 'Keyframe', 'LoopCandidate', 'LoopOutcome', 'Match', 'ScanResult',
+           'Source', 'StageTimes', 'loop_name']
 
 FloatArray = npt.NDArray[np.float64]
 NAN_COV: tuple[float, ...] = (math.nan,) * 36
 IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 Source = Literal['descriptor', 'graph', 'step']  # what proposed a candidate
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    """SOLiD descriptor of one scan.
+
+    Attributes:
+        r_solid: R-SOLiD, shape (N_r,): place signature, compared by cosine distance.
+        a_solid: A-SOLiD, shape (N_a,): azimuth signature, used for the heading.
+        rec: range-elevation counts, shape (N_r, N_e).
+        aec: azimuth-elevation counts, shape (N_a, N_e).
+        iev: min-max normalised elevation counts (the weights), shape (N_e,).
+        num_points: points left after preprocessing.
+        heading: signature used for the heading, shape (N_a,): ``a_solid`` itself with
+            ``heading_weight='count'``; with ``'range'`` the same sum with each point
+            weighted by its squared horizontal range (about the surface it stands for), so
+            near objects, whose azimuth shifts most when the sensor moves, count less.
+    """
+
+    r_solid: FloatArray
+    a_solid: FloatArray
+    rec: FloatArray
+    aec: FloatArray
+    iev: FloatArray
+    num_points: int
+    heading: FloatArray
+
+    @property
+    def ec(self) -> FloatArray:
+        """Elevation counts EC[k] = sum_i REC[i, k]."""
+        ec: FloatArray = self.rec.sum(axis=0)
+        return ec
+
+
+@dataclass(frozen=True)
+class Match:
+    """One stored scan returned by :meth:`DescriptorDatabase.search`.
+
+    Attributes:
+        seq: insertion sequence number (valid while the scan is stored).
+        index: index of the scan within its own session.
+        session: session id of the scan.
+        stamp_ns: stamp of the scan, integer nanoseconds.
+        distance: exact cosine distance to the query, in [0, 2].
+    """
+
+    seq: int
+    index: int
+    session: int
+    stamp_ns: int
+    distance: float
 
 
 @dataclass(frozen=True)
@@ -66,7 +116,7 @@ class LoopCandidate:
         spread: the constraint without the strongest object (NaN: not measured).
         source: what proposed it: ``'descriptor'`` (the descriptor's nearest places) or
             ``'graph'`` (a keyframe near the query in the back end's estimate, see
-            :mod:`solid_ros.core.proposals`; its ``margin`` is NaN), or ``'step'`` (the
+            :mod:`solid_ros.core.candidates.position`; its ``margin`` is NaN), or ``'step'`` (the
             previous keyframe, :attr:`ScanResult.step`; never published).
     """
 
@@ -97,32 +147,6 @@ class LoopCandidate:
     def matrix(self) -> FloatArray:
         """``T`` as a 4x4 matrix."""
         return vector_to_matrix(self.pose)
-
-
-@dataclass(frozen=True)
-class Hit:
-    """A candidate to verify: the descriptor's (from ``LoopDetector.propose``) or the
-    pose graph's (added by ``verify``); ``guess`` is the graph's ``T_mq`` in the levelled
-    frames, the first start of the coarse registration (None: the graph has none); ``near``:
-    among the keyframes near the query in the graph's estimate (verified first); ``view``:
-    among those whose view centre lies near the query's (verified next); ``shared``: among
-    those that share the query's coarse structure in the graph's estimate (verified last);
-    ``heading_tol_deg``: how far a loop the graph proposed may turn from the guess;
-    ``sigma_m``: the query's position sigma in the graph, its view centre as the lever;
-    ``place_sigma``: the same relative to the match keyframe, asked of the graph only when
-    :func:`~solid_ros.core.proposals.knows_place` needs it (None: use ``sigma_m``)."""
-
-    match: Match
-    margin: float
-    heading: npt.NDArray[np.float32]
-    source: Source = 'descriptor'
-    guess: FloatArray | None = None
-    near: bool = False
-    heading_tol_deg: float = 180.0
-    view: bool = False
-    sigma_m: float = math.inf
-    place_sigma: Callable[[], float] | None = None
-    shared: bool = False
 
 
 @dataclass(frozen=True)
@@ -168,39 +192,100 @@ class ScanResult:
     step: LoopCandidate | None = None
 
 
-@dataclass
-class Proposal:
-    """What ``LoopDetector.propose`` found for one keyframe, for ``verify``.
+# -------------------------------------------------------------------------------------- the back e
+
+ACCEPTED = ('added', 'anchor', 'tie')
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """A keyframe in the graph: enough for another back end to rebuild the chain.
 
     Attributes:
-        query_index: index of the keyframe in this session.
+        index: its index among this session's keyframes.
         stamp_ns: its stamp.
-        seq: its database sequence number.
-        heading: its heading signature.
-        r_solid: its R-SOLiD (shared with peer robots).
-        pose: its pose vector ``(x, y, z, qx, qy, qz, qw)``, when known.
-        cloud_points: its keyframe cloud points (levelled, gated, clipped, voxelised), or
-            None without verification.
-        tight: the cloud is on the tight-space grid (see ``verify_tight_range``).
-        hits: descriptor candidates, nearest first.
-        best: the nearest stored scan by descriptor, accepted or not.
-        descriptor: its descriptor (None when given as a descriptor).
-        describe_ms: time spent levelling and describing, milliseconds.
-        search_ms: time spent searching and storing the descriptor, milliseconds.
-        query: its cloud prepared for registration (set by ``LoopDetector.verify``).
+        odom: 4x4 odometry pose ``T_odom_sensor``.
+        pose: 4x4 corrected pose ``T_map_sensor``.
+        segment: the graph segment (a new one after each odometry jump or reset).
     """
 
-    query_index: int
+    index: int
     stamp_ns: int
-    seq: int
-    heading: FloatArray
-    cloud_points: FloatArray | None
-    r_solid: FloatArray | None = None
-    pose: FloatArray | None = None
-    hits: list[Hit] = field(default_factory=list)
-    best: LoopCandidate | None = None
-    descriptor: Descriptor | None = None
-    describe_ms: float = math.nan
-    search_ms: float = math.nan
-    query: Query | None = None
-    tight: bool = False
+    odom: FloatArray
+    pose: FloatArray
+    segment: int
+
+
+@dataclass(frozen=True)
+class BackendEvent:
+    """Something the caller should log (one line).
+
+    Attributes:
+        kind: ``'segment'``, ``'anchor'``, ``'tie'``, ``'rebuild'``, ``'gate'``,
+            ``'confirmed'``, ``'unconfirmed'``, ``'odom_covariance'``, ``'no_pose'`` or
+            ``'ignored'``.
+        message: the line.
+    """
+
+    kind: str
+    message: str
+
+
+@dataclass(frozen=True)
+class LoopOutcome:
+    """What the back end did with one published loop.
+
+    Attributes:
+        loop: the loop.
+        reason: ``'added'``, ``'anchor'`` (it moved the session into the loaded map),
+            ``'tie'`` (it placed a segment that no loop had tied yet),
+            ``'gate'`` (refused: too far from the estimate), ``'no_covariance'``,
+            ``'no_pose'`` (the query has no odometry pose), ``'unknown_keyframe'`` (the
+            match is not in the graph), ``'unknown_session'`` (another robot's keyframe
+            without a map pose) or ``'failed'`` (gtsam could not solve with it).
+        sigmas: its Mahalanobis distance from the estimate (NaN: not measured).
+    """
+
+    loop: LoopCandidate
+    reason: str
+    sigmas: float = math.nan
+
+    @property
+    def accepted(self) -> bool:
+        """Whether the loop is a factor of the graph."""
+        return self.reason in ACCEPTED
+
+
+@dataclass(frozen=True)
+class BackendState:
+    """The back end after one keyframe.
+
+    Attributes:
+        index: the keyframe's index (-1: not a keyframe).
+        stamp_ns: its stamp.
+        added: whether it became a variable of the graph.
+        pose: its corrected pose ``T_map_sensor`` (None when not added).
+        correction: ``T_map_odom`` of the newest keyframe in the graph (identity before any).
+        covariance: 6x6 marginal covariance of ``pose`` (ROS order, right perturbation in the
+            sensor frame), None when not added or not available.
+        segment: the graph segment of the newest keyframe.
+        loops: what happened to each of the keyframe's loops.
+        events: lines to log.
+        update_ms: time spent in this update, milliseconds.
+    """
+
+    index: int
+    stamp_ns: int
+    added: bool
+    pose: FloatArray | None
+    correction: FloatArray
+    covariance: FloatArray | None
+    segment: int
+    loops: tuple[LoopOutcome, ...] = ()
+    events: tuple[BackendEvent, ...] = ()
+    update_ms: float = 0.0
+
+
+def loop_name(loop: LoopCandidate) -> str:
+    """A loop as log lines name it."""
+    return f'{loop.query_index} -> session {loop.match_session} keyframe {loop.match_index}'

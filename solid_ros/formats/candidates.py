@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.detector import LoopCandidate
 from solid_ros.core.errors import SolidError
+from solid_ros.core.results import LoopCandidate
 from solid_ros.core.stamps import join_stamp, split_stamp
 
 __all__ = ['BASE_COLUMNS', 'CANDIDATE_FIELDS', 'COLUMNS', 'COLUMNS_LABEL', 'COV_COLUMNS',
@@ -110,7 +110,7 @@ def to_rows(candidates: Iterable[Any]) -> npt.NDArray[np.float64]:
     """Return an ``(n, len(COLUMNS))`` float64 array, one row per candidate.
 
     Args:
-        candidates: :class:`~solid_ros.core.detector.LoopCandidate` objects (or any with its
+        candidates: :class:`~solid_ros.core.results.LoopCandidate` objects (or any with its
             attributes).
     """
     rows = [[_CODES[name][v] if name in _CODES else v for name in MESSAGE_FIELDS

@@ -52,8 +52,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.errors import SolidError
-from solid_ros.core.keyframes import KeyframeCloud
 
 __all__ = ['CatchUpRequest', 'CloudReply', 'CloudRequest', 'DescriptorMessage',
            'MAX_CLOUD_POINTS', 'MAX_DESCRIPTOR_BYTES', 'PeerAuthError', 'PeerMessageError',

@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.database.persistence import write_atomic
 from solid_ros.core.errors import PoseError
 from solid_ros.core.geometry import matrix_to_vector, vector_to_matrix
-from solid_ros.core.persistence import write_atomic
 
 __all__ = [
     'PoseError', 'PoseTrack', 'format_stamp_ns', 'load_reference', 'odometry_to_pose',

@@ -43,9 +43,9 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
+from solid_ros.core.backend.mapping import MapCloud, build_map
 from solid_ros.core.config import NodeConfig
 from solid_ros.core.errors import SolidError
-from solid_ros.core.mapping import MapCloud, build_map
 from solid_ros.formats.pointfiles import read_pcd, write_pcd
 from solid_ros.formats.poses import (
     read_kitti_poses,

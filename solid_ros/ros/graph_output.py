@@ -1,14 +1,16 @@
 """The pose graph behind solid_node, between the verify thread and the executor.
 
-The verify thread hands every verified keyframe (its :class:`~solid_ros.core.detector.ScanResult`
-and paired :class:`~solid_ros.core.odometry.OdomSample`) to :meth:`GraphOutput.take`, after its
+The verify thread hands every verified keyframe (its :class:`~solid_ros.core.results.ScanResult`
+and paired :class:`~solid_ros.core.odometry.track.OdomSample`) to :meth:`GraphOutput.take`, after
+its
 loops went out, so the back end never delays a loop. The graph is updated there, its events are
 logged, and what the publishers need is copied into one immutable :class:`GraphSnapshot`: the
 correction ``T_map_odom``, the newest pose's covariance and the corrected keyframe path. The
 executor's timers, callbacks and services read the newest snapshot without waiting for the
 graph, and so does the verify thread: :meth:`GraphOutput.hint` hands the detector the graph
 after the previous keyframe (taken on that thread, so the node verifies with the same graph as
-the replay) for its candidates by position (:mod:`solid_ros.core.proposals`). Its arrays are
+the replay) for its candidates by position (:mod:`solid_ros.core.candidates.position`). Its arrays
+are
 read-only. No ROS import.
 """
 
@@ -21,10 +23,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.backend.posegraph import PoseGraph
+from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.errors import SolidError
-from solid_ros.core.graphtypes import BackendState
-from solid_ros.core.posegraph import PoseGraph
-from solid_ros.core.proposals import GraphHint
+from solid_ros.core.results import BackendState
 from solid_ros.ros.stages import Log, Verified
 
 __all__ = ['GraphOutput', 'GraphSnapshot']

@@ -1,6 +1,6 @@
 """KISS-ICP as solid_node's odometry (``odometry_source: kiss_icp``).
 
-The describe thread registers each cloud (:class:`~solid_ros.core.kiss_odometry.KissOdometry`)
+The describe thread registers each cloud (:class:`~solid_ros.core.odometry.kiss.KissOdometry`)
 before describing it, never a subscription callback. Each pose goes out as nav_msgs/Odometry
 on ``~/kiss/odometry`` and as the ``odom_frame -> sensor`` transform on ``/tf`` (frames from
 ``odom_frame``, default ``odom``, and ``sensor_frame``, default the cloud's header frame), so
@@ -19,8 +19,8 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 
 from solid_ros.core.config import NodeConfig
-from solid_ros.core.kiss_odometry import KissOdometry
-from solid_ros.core.odometry import OdomSample
+from solid_ros.core.odometry.kiss import KissOdometry
+from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.stamps import split_stamp
 from solid_ros.ros.graph_msgs import pose_msg, transform_msg
 

@@ -12,7 +12,7 @@ from typing import Any
 
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension  # type: ignore[import-untyped]
 
-from solid_ros.core.detector import LoopCandidate
+from solid_ros.core.results import LoopCandidate
 from solid_ros.core.stamps import format_stamp
 from solid_ros.formats.candidates import layout_dims, to_rows
 from solid_ros.ros.markers import Edge, LoopMarkers

@@ -28,8 +28,8 @@ descriptor computation or registration.
 
 Where a keyframe's result goes: :meth:`SolidNode._hand_on` gets every verified keyframe, in
 keyframe order, as one :class:`~solid_ros.ros.stages.Verified` (its
-:class:`~solid_ros.core.detector.ScanResult` and paired
-:class:`~solid_ros.core.odometry.OdomSample`), and publishes, logs and draws its loops. A
+:class:`~solid_ros.core.results.ScanResult` and paired
+:class:`~solid_ros.core.odometry.track.OdomSample`), and publishes, logs and draws its loops. A
 consumer of the whole flow (a pose graph) takes it there too.
 """
 
@@ -55,13 +55,17 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from solid_ros.core.backend.mapping import mount_rotation
+from solid_ros.core.backend.posegraph import PoseGraph
 from solid_ros.core.config import NodeConfig, SolidConfig
-from solid_ros.core.detector import LoopDetector
+from solid_ros.core.database.persistence import (
+    check_save_target,
+    read_map_poses,
+    remove_stale_temporaries,
+)
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
-from solid_ros.core.mapping import mount_rotation
-from solid_ros.core.odometry import OdomSample
-from solid_ros.core.persistence import check_save_target, read_map_poses, remove_stale_temporaries
-from solid_ros.core.posegraph import PoseGraph
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.stamps import join_stamp, seconds_to_ns
 from solid_ros.formats.peers import key_id
 from solid_ros.formats.pointcloud2 import cloud_to_xyz

@@ -1,6 +1,6 @@
 """The node's odometry: the core's pairing plus a short wait for odometry that lags its cloud.
 
-Pairing is :class:`~solid_ros.core.odometry.StampedOdometry`, the rule the replay and the
+Pairing is :class:`~solid_ros.core.odometry.track.StampedOdometry`, the rule the replay and the
 fleet replay use too. What the node adds is timing: odometry often arrives just after its
 cloud, so :meth:`OdometryWait.pair` waits up to ``wait_sec`` for a pose stamped at or past
 the cloud, but only when someone publishes odometry (an unused topic must not slow every
@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import PoseError
-from solid_ros.core.odometry import OdomSample, StampedOdometry
+from solid_ros.core.odometry.track import OdomSample, StampedOdometry
 
 __all__ = ['OdometryWait']
 

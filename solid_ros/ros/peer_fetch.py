@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from solid_ros.core.keyframes import KeyframeCloud
+from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.reasons import Reason
 from solid_ros.formats.peers import CloudReply
 

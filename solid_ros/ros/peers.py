@@ -50,9 +50,9 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt8MultiArray
 
+from solid_ros.core.candidates.proposal import Proposal
 from solid_ros.core.config import NodeConfig
-from solid_ros.core.detector import Proposal
-from solid_ros.core.keyframes import KeyframeCloud
+from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.reasons import Reason
 from solid_ros.formats.peers import (
     MAX_DESCRIPTOR_BYTES,

@@ -20,13 +20,15 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.backend.mapping import keyframe_clouds
+from solid_ros.core.candidates.position import GraphHint
+from solid_ros.core.candidates.proposal import Proposal
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopCandidate, LoopDetector, Proposal, ScanResult
-from solid_ros.core.keyframes import KeyframeCloud
-from solid_ros.core.mapping import keyframe_clouds
-from solid_ros.core.persistence import backup_if_shrinking
-from solid_ros.core.proposals import GraphHint
+from solid_ros.core.database.clouds import KeyframeCloud
+from solid_ros.core.database.persistence import backup_if_shrinking
+from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.reasons import Reason
+from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.formats.peers import DescriptorMessage
 
 __all__ = ['CloudSource', 'IN_FLIGHT', 'SharedDetector']
@@ -179,7 +181,7 @@ class SharedDetector:
         and renames it over ``path``), with the back end's map-frame poses when given; return
         the scans saved and, when the save would have replaced a database with an empty or
         much smaller one, the backup kept of it
-        (:func:`~solid_ros.core.persistence.backup_if_shrinking`).
+        (:func:`~solid_ros.core.database.persistence.backup_if_shrinking`).
 
         Raises:
             SolidError, OSError: nothing was saved.

@@ -20,10 +20,12 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.detector import LoopDetector, Proposal, ScanResult
+from solid_ros.core.candidates.position import GraphHint
+from solid_ros.core.candidates.proposal import Proposal
 from solid_ros.core.errors import CloudError
-from solid_ros.core.odometry import OdomSample
-from solid_ros.core.proposals import GraphHint
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.odometry.track import OdomSample
+from solid_ros.core.results import ScanResult
 from solid_ros.ros.health import WARN_THROTTLE_SEC, InputHealth
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stats import StageTimings

@@ -29,7 +29,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
-from solid_ros.core.detector import LoopCandidate, ScanResult
+from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.core.stamps import NS_PER_SEC
 
 __all__ = ['StampGuard']

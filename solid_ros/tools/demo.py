@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
-from solid_ros.core.odometry import nearest_stamp
+from solid_ros.core.odometry.track import nearest_stamp
 from solid_ros.formats.poses import read_times
 from solid_ros.runtime import tune_allocator
 from solid_ros.tools.evaluation import relative_yaws

@@ -27,11 +27,12 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopCandidate, LoopDetector, ScanResult
+from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.errors import BagError, ConfigError, PoseError, SolidError
-from solid_ros.core.keyframes import KeyframeCloud
-from solid_ros.core.odometry import StampedOdometry
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.odometry.track import StampedOdometry
 from solid_ros.core.reasons import Reason
+from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.formats.bags import Bag, CloudScan, select_cloud_topic, select_odom_topic
 from solid_ros.formats.poses import PoseTrack
 from solid_ros.tools.fleet_scoring import (

@@ -19,8 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopCandidate
 from solid_ros.core.errors import SolidError
+from solid_ros.core.results import LoopCandidate
 from solid_ros.formats.candidates import candidate_columns
 from solid_ros.tools.loops import pose_error
 from solid_ros.tools.options import ReplayOptions

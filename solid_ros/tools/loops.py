@@ -17,7 +17,7 @@ Definitions (keyframes numbered 0..K-1 in replay order; ``ref`` their reference 
   least one correct published loop (to any keyframe). It does not depend on the detector's
   exclusion window, so runs with different settings, and other systems, count alike.
 * By source: published and correct loops per :attr:`LoopRecord.source` (``descriptor`` or
-  ``graph``, :mod:`solid_ros.core.proposals`).
+  ``graph``, :mod:`solid_ros.core.candidates.position`).
 * Sweep (with verification): at a ``verify_min_overlap`` of ``t`` the published loops are
   taken to be the attempts that reached the overlap test and passed every other test (the
   published, verified ones) whose recorded structure overlap is at least ``t``; precision and

@@ -1,7 +1,7 @@
 """What a replay writes into ``--out``: candidates.csv, report.json, the keyframe trajectory
 (trajectory.tum, trajectory.kitti), map.pcd with ``--map``, and the plots.
 
-The CSV columns are derived from :class:`~solid_ros.core.detector.LoopCandidate`
+The CSV columns are derived from :class:`~solid_ros.core.results.LoopCandidate`
 (:func:`~solid_ros.formats.candidates.candidate_columns`): a layout names the fields in column
 order with the tool's own columns between them, and :func:`candidate_cells` fills a row the
 same way, so the fleet replay's CSV, the replay's and the node's message share one mapping.
@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.detector import LoopCandidate
 from solid_ros.core.errors import SolidError
+from solid_ros.core.results import LoopCandidate
 from solid_ros.formats.candidates import candidate_columns, candidate_values
 from solid_ros.formats.pointfiles import write_pcd
 from solid_ros.tools.loops import LoopRecord

@@ -1,16 +1,17 @@
 """The replay's scan loop: bag -> odometry source -> loop closure, one record per cloud.
 
 :class:`ReplayPipeline` reads the clouds of one topic, asks its odometry source
-(:class:`~solid_ros.core.odometry.OdometrySource`: the bag's Odometry topic, or KISS-ICP over
+(:class:`~solid_ros.core.odometry.track.OdometrySource`: the bag's Odometry topic, or KISS-ICP over
 the clouds) for each cloud's pose and hands both to the product's
-:class:`~solid_ros.core.closure.LoopClosure` (the detector and, with ``backend``, the pose
+:class:`~solid_ros.core.flow.closure.LoopClosure` (the detector and, with ``backend``, the pose
 graph); it yields one :class:`ScanRecord` per message. :meth:`ReplayPipeline.step` is the one
 place a scan goes through that chain. :class:`ScanLog` keeps what the scoring, the trajectory
 and the report need.
 
 Odometry pairing: a recorded Odometry topic is a :class:`StampedOdometry` over the whole
 track, and each cloud gets the pose nearest its header stamp within ``odom_tolerance_sec``
-(:func:`~solid_ros.core.odometry.nearest_stamp`, ties to the earlier). The node applies the same
+(:func:`~solid_ros.core.odometry.track.nearest_stamp`, ties to the earlier). The node applies the
+same
 nearest-within-tolerance rule to the odometry received so far (its newest 512 messages),
 waiting at most 0.25 s for one at or past the cloud's stamp; the two pair alike when the
 odometry reaches the node within that wait, and only the replay pairs odometry that comes later.
@@ -25,11 +26,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
 
-from solid_ros.core.closure import LoopClosure
-from solid_ros.core.detector import LoopCandidate, LoopDetector, ScanResult
 from solid_ros.core.errors import SolidError
-from solid_ros.core.graphtypes import BackendState
-from solid_ros.core.odometry import OdometrySource, OdomSample, StampedOdometry
+from solid_ros.core.flow.closure import LoopClosure
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.odometry.track import OdometrySource, OdomSample, StampedOdometry
+from solid_ros.core.results import BackendState, LoopCandidate, ScanResult
 from solid_ros.formats.bags import Bag, CloudScan, select_cloud_topic, select_odom_topic
 from solid_ros.formats.poses import PoseTrack
 from solid_ros.tools.options import ReplayOptions
@@ -245,7 +246,7 @@ class ReplayPipeline:
         if not opts.feed_odom:
             return None, 'none'
         if opts.odometry_mode == 'kiss-icp':
-            from solid_ros.core.kiss_odometry import KissOdometry
+            from solid_ros.core.odometry.kiss import KissOdometry
 
             return KissOdometry(opts.node_config), 'kiss-icp'
         if track is None:

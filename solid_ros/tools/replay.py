@@ -1,6 +1,6 @@
 """solid_replay: run the node's loop detector over a recorded bag, with metrics and plots.
 
-The detector is the node's: the same :class:`~solid_ros.core.detector.LoopDetector`,
+The detector is the node's: the same :class:`~solid_ros.core.flow.detector.LoopDetector`,
 configured from the same parameter file by the node's rule (:func:`load_config`), fed the
 same decoded clouds (:func:`~solid_ros.formats.pointcloud2.cloud_to_xyz`) and header stamps.
 Odometry poses pair with clouds by the node's rule over the whole recorded track, which only
@@ -12,7 +12,7 @@ record per scan; :mod:`~solid_ros.tools.scoring`, :mod:`~solid_ros.tools.reports
 :mod:`~solid_ros.tools.outputs` score, report and write it. Several bags are a fleet
 (:mod:`solid_ros.tools.fleet`).
 
-The scans go through the product's :class:`~solid_ros.core.closure.LoopClosure`: the detector
+The scans go through the product's :class:`~solid_ros.core.flow.closure.LoopClosure`: the detector
 and, with ``backend: true``, the pose graph, whose corrected keyframe poses are written as
 ``trajectory.tum`` / ``trajectory.kitti`` (:mod:`solid_ros.tools.trajectory`) and scored
 (ATE, RPE) beside the odometry's. The odometry is the bag's Odometry topic or KISS-ICP over the
@@ -32,12 +32,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from solid_ros.core.closure import LoopClosure
+from solid_ros.core.backend.mapping import MapCloud, build_map, keyframe_clouds, mount_rotation
 from solid_ros.core.config import NodeConfig, SolidConfig, check_parameters, load_parameter_file
-from solid_ros.core.detector import LoopDetector
+from solid_ros.core.database.persistence import check_save_target
 from solid_ros.core.errors import ConfigError, PoseError, SolidError
-from solid_ros.core.mapping import MapCloud, build_map, keyframe_clouds, mount_rotation
-from solid_ros.core.persistence import check_save_target
+from solid_ros.core.flow.closure import LoopClosure
+from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.formats.poses import PoseTrack, load_reference
 from solid_ros.runtime import tune_allocator
 from solid_ros.tools.fleet import fleet_summary_lines, replay_fleet, write_fleet_outputs

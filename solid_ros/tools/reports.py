@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from solid_ros.core.closure import LoopClosure
-from solid_ros.core.detector import LoopDetector
+from solid_ros.core.flow.closure import LoopClosure
+from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.tools.evaluation import sweep_table
 from solid_ros.tools.options import ReplayOptions
 from solid_ros.tools.pipeline import STAGES, BagInputs, ScanLog

@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.backend.mapping import MapCloud
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopCandidate
-from solid_ros.core.mapping import MapCloud
+from solid_ros.core.results import LoopCandidate
 from solid_ros.tools.evaluation import Evaluation
 from solid_ros.tools.loops import LoopRecord
 from solid_ros.tools.pipeline import BagInputs, ScanLog, published_best

@@ -18,9 +18,9 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopCandidate, ScanResult
 from solid_ros.core.errors import PoseError
-from solid_ros.core.odometry import nearest_stamp
+from solid_ros.core.odometry.track import nearest_stamp
+from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.formats.poses import PoseTrack
 from solid_ros.tools.evaluation import Evaluation, evaluate, recommend_threshold
 from solid_ros.tools.loops import (

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.closure import LoopClosure
+from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.geometry import matrix_to_vector
 from solid_ros.formats.poses import write_kitti_poses, write_tum_poses
 from solid_ros.tools.pipeline import ScanLog

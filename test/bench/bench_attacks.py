@@ -62,9 +62,9 @@ from std_msgs.msg import Float64MultiArray, UInt8MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from test_node import read_bag, stamp_of  # noqa: E402
 
+from solid_ros.core.database.clouds import KeyframeCloud  # noqa: E402
+from solid_ros.core.database.persistence import read_database  # noqa: E402
 from solid_ros.core.geometry import quaternion_to_matrix  # noqa: E402
-from solid_ros.core.keyframes import KeyframeCloud  # noqa: E402
-from solid_ros.core.persistence import read_database  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
 from solid_ros.formats.peers import (  # noqa: E402
     CatchUpRequest,
@@ -677,8 +677,8 @@ def split_racer(rig: Rig, data: Hku1, key: bool, mode: str) -> Result:
 def stored_ids(tmp: Path) -> Result:
     """A saved database holding robot 2**31 - 1 and one holding -1: the node's start."""
     from solid_ros.core.config import SolidConfig
-    from solid_ros.core.database import DescriptorDatabase
-    from solid_ros.core.persistence import save_database
+    from solid_ros.core.database.descriptors import DescriptorDatabase
+    from solid_ros.core.database.persistence import save_database
 
     cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
     db = DescriptorDatabase(cfg.replace(session_id=2**31 - 1))

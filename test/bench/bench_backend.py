@@ -57,13 +57,14 @@ sys.path.insert(0, str(ROOT / 'test'))
 
 from drifting_odometry import Drift, drift_percent, drifting_odometry  # noqa: E402
 
+from solid_ros.core.backend.noise import rotation_angle  # noqa: E402
+from solid_ros.core.backend.posegraph import PoseGraph  # noqa: E402
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.detector import LoopCandidate, LoopDetector, ScanResult  # noqa: E402
+from solid_ros.core.database.persistence import read_map_poses  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 from solid_ros.core.geometry import matrix_to_vector  # noqa: E402
-from solid_ros.core.graphnoise import rotation_angle  # noqa: E402
-from solid_ros.core.odometry import OdomSample  # noqa: E402
-from solid_ros.core.persistence import read_map_poses  # noqa: E402
-from solid_ros.core.posegraph import PoseGraph  # noqa: E402
+from solid_ros.core.odometry.track import OdomSample  # noqa: E402
+from solid_ros.core.results import LoopCandidate, ScanResult  # noqa: E402
 from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, Drive, DriveConfig, cast_scan  # noqa: E402
 from solid_ros.tools.trajectory_metrics import ate_rmse, rpe  # noqa: E402
 
@@ -176,7 +177,7 @@ def batch(pg: PoseGraph, odo: np.ndarray, kernel: str) -> tuple[np.ndarray, int,
     corrected poses, the loops GNC judged outliers and the seconds taken."""
     import gtsam
 
-    from solid_ros.core.graphsolver import FactorRecord, GraphSolver
+    from solid_ros.core.backend.solver import FactorRecord, GraphSolver
 
     solver = GraphSolver('huber' if kernel == 'gnc' else kernel, 1.345)
     graph = gtsam.NonlinearFactorGraph()

@@ -52,12 +52,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from solid_ros.core.closure import LoopClosure  # noqa: E402
+from solid_ros.core.backend.noise import rotation_angle  # noqa: E402
+from solid_ros.core.backend.posegraph import PoseGraph  # noqa: E402
+from solid_ros.core.database.persistence import read_map_poses  # noqa: E402
+from solid_ros.core.flow.closure import LoopClosure  # noqa: E402
 from solid_ros.core.geometry import vector_to_matrix  # noqa: E402
-from solid_ros.core.graphnoise import rotation_angle  # noqa: E402
-from solid_ros.core.odometry import OdometrySource, OdomSample, Points  # noqa: E402
-from solid_ros.core.persistence import read_map_poses  # noqa: E402
-from solid_ros.core.posegraph import PoseGraph  # noqa: E402
+from solid_ros.core.odometry.track import OdometrySource, OdomSample, Points  # noqa: E402
 from solid_ros.tools.options import ReplayOptions  # noqa: E402
 from solid_ros.tools.pipeline import ReplayPipeline  # noqa: E402
 from solid_ros.tools.replay import ReplayResult, load_config, replay  # noqa: E402

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from solid_ros import SolidConfig, cosine_distance, describe, estimate_yaw
-from solid_ros.core.descriptor import fov_mask
+from solid_ros.core.descriptor.solid import fov_mask
 from solid_ros.formats.pointfiles import read_pcd
 
 ROOT = Path(__file__).resolve().parents[2]

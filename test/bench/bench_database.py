@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import numpy.typing as npt  # noqa: E402
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.database import DescriptorDatabase  # noqa: E402
+from solid_ros.core.database.descriptors import DescriptorDatabase  # noqa: E402
 
 SEC = 1_000_000_000
 

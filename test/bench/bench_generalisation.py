@@ -34,11 +34,12 @@ poses carry the tilt, as a LiDAR-inertial odometry's would); ``room_edges`` and
 object and what lies behind it, as real sensors return.
 
 Drifting odometry (``--odometry drift``): the scans go through the product's
-:class:`~solid_ros.core.closure.LoopClosure` with the back end on, fed the simulator's drifting
+:class:`~solid_ros.core.flow.closure.LoopClosure` with the back end on, fed the simulator's
+drifting
 odometry (``scan.odom``: its default model, about 1.5 % of the path; ``--drift strong``: 1 %
 scale error and 0.055 deg/m heading bias, about 5 %, as ``bench_backend.py``; the room walk gets
 the same models over its own path). Then the back end's candidates by position
-(``graph_candidates``, :mod:`solid_ros.core.proposals`) take part; ``--set
+(``graph_candidates``, :mod:`solid_ros.core.candidates.position`) take part; ``--set
 graph_candidates=0`` turns them off for a before / after. Also printed per case: the revisit
 recall (:func:`solid_ros.tools.loops.revisits`: keyframes with an earlier one within 5 m after
 at least 30 m of reference path; the room: within 1.5 m and 45 deg after 8 m) and the loops
@@ -81,11 +82,12 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from solid_ros.core.closure import LoopClosure  # noqa: E402
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.detector import LoopCandidate, LoopDetector  # noqa: E402
+from solid_ros.core.flow.closure import LoopClosure  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 from solid_ros.core.geometry import rpy_matrix  # noqa: E402
-from solid_ros.core.odometry import OdomSample  # noqa: E402
+from solid_ros.core.odometry.track import OdomSample  # noqa: E402
+from solid_ros.core.results import LoopCandidate  # noqa: E402
 from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, avia_like, cast_scan, simulate  # noqa: E402
 from solid_ros.sim.drive import START_NS, DriveConfig, pose_matrix  # noqa: E402
 from solid_ros.sim.odometry import drift_planar  # noqa: E402

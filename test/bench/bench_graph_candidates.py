@@ -40,10 +40,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from solid_ros.core.closure import LoopClosure  # noqa: E402
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.detector import LoopDetector  # noqa: E402
-from solid_ros.core.odometry import OdomSample  # noqa: E402
+from solid_ros.core.flow.closure import LoopClosure  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
+from solid_ros.core.odometry.track import OdomSample  # noqa: E402
 from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, simulate  # noqa: E402
 from solid_ros.tools.loops import (  # noqa: E402
     LoopRecord,

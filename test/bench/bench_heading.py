@@ -36,8 +36,8 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / 'test'))
 
 from solid_ros import LoopDetector, SolidConfig, describe  # noqa: E402
+from solid_ros.core.descriptor.matching import estimate_yaw, heading_hypotheses  # noqa: E402
 from solid_ros.core.geometry import relative_yaw  # noqa: E402
-from solid_ros.core.matching import estimate_yaw, heading_hypotheses  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
 AVIA = ROOT / 'config' / 'avia.yaml'

@@ -5,7 +5,7 @@ beside the detector's, and the simulator's odometry drift.
    issue's reference recipe calls it (``KISSConfig()`` with ``data.max_range = 50``,
    ``data.deskew = False``, ``mapping.voxel_size = 0.5``, ``register_frame(points, zeros)``
    per cloud, ``last_pose``), twice (KISS-ICP's own run-to-run spread), and through
-   :class:`solid_ros.core.kiss_odometry.KissOdometry` with the same settings (its checks
+   :class:`solid_ros.core.odometry.kiss.KissOdometry` with the same settings (its checks
    included). ATE RMSE after an SE(3) (Umeyama, no scale) alignment of the positions to
    optimized_poses.txt, end error (last pose against the reference's last pose relative to
    its first) and its % of the reference path; per-cloud cost median and p95. The adapter's
@@ -17,7 +17,7 @@ beside the detector's, and the simulator's odometry drift.
    stretch), demo revisits drive for hdl64 and avia_like, seeds 0-4 (the model does not depend
    on the sensor: same route, same figures), plus the longer drives.
 4. KISS-ICP on the simulator's scans (hdl64, a scan every metre, 30 m along the first street),
-   with and without the ground points: why test/core/test_kiss_odometry.py drops them.
+   with and without the ground points: why test/core/odometry/test_kiss.py drops them.
 
 Timings on a shared 2-core machine are noisy; the figures that matter here are the equalities.
 Usage: ``python test/bench/bench_kiss.py [--seeds 5] [--skip-hku1] [--skip-sim-kiss]``.
@@ -38,8 +38,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / 'test'))
 
 from solid_ros.core.config import NodeConfig, SolidConfig  # noqa: E402
-from solid_ros.core.detector import LoopDetector  # noqa: E402
-from solid_ros.core.kiss_odometry import KissOdometry, load_kiss_icp  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
+from solid_ros.core.odometry.kiss import KissOdometry, load_kiss_icp  # noqa: E402
 from solid_ros.formats.poses import read_kitti_poses  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'

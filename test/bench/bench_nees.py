@@ -58,7 +58,8 @@ sys.path.insert(0, str(ROOT / 'test' / 'bench'))
 from bench_generalisation import Case, case_config, case_scans, indoor_case  # noqa: E402
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.detector import LoopCandidate, LoopDetector  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
+from solid_ros.core.results import LoopCandidate  # noqa: E402
 from solid_ros.tools.loops import pose_error  # noqa: E402
 from solid_ros.tools.uncertainty import Nees, nees, summarise  # noqa: E402
 

@@ -30,8 +30,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.descriptor import describe  # noqa: E402
-from solid_ros.core.detector import LoopDetector  # noqa: E402
+from solid_ros.core.descriptor.solid import describe  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 from solid_ros.sim import simulate, write_bag  # noqa: E402
 
 WINDOW = 500

@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT / 'test'))
 sys.path.insert(0, str(ROOT / 'test' / 'bench'))
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.detector import LoopDetector  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
 

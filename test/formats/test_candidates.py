@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from solid_ros.core.detector import LoopCandidate
+from solid_ros.core.results import LoopCandidate
 from solid_ros.formats.candidates import (
     BASE_COLUMNS,
     CANDIDATE_FIELDS,

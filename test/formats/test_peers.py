@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from solid_ros.core.keyframes import KeyframeCloud
+from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.formats.peers import (
     CatchUpRequest,
     CloudReply,

@@ -13,16 +13,13 @@ pytest.importorskip('gtsam', reason='gtsam is not installed')
 
 from drifting_odometry import Drift, drifting_odometry, square  # noqa: E402
 
+from solid_ros.core.backend.posegraph import PoseGraph  # noqa: E402
+from solid_ros.core.candidates.proposal import Proposal  # noqa: E402
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.detector import (  # noqa: E402
-    LoopCandidate,
-    LoopDetector,
-    Proposal,
-    ScanResult,
-)
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 from solid_ros.core.geometry import matrix_to_vector, rot_z  # noqa: E402
-from solid_ros.core.odometry import OdomSample  # noqa: E402
-from solid_ros.core.posegraph import PoseGraph  # noqa: E402
+from solid_ros.core.odometry.track import OdomSample  # noqa: E402
+from solid_ros.core.results import LoopCandidate, ScanResult  # noqa: E402
 from solid_ros.ros.graph_msgs import (  # noqa: E402
     corrected_odometry,
     covariance_in_parent,

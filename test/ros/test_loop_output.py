@@ -11,8 +11,8 @@ pytest.importorskip('std_msgs', reason='ROS 2 message packages are not installed
 
 from test_stages import LOOP_EVERY_SCAN, Log, scene  # noqa: E402
 
-from solid_ros.core.detector import LoopDetector  # noqa: E402
-from solid_ros.core.odometry import OdomSample  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
+from solid_ros.core.odometry.track import OdomSample  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
 from solid_ros.ros.loop_output import LoopOutput, loop_line  # noqa: E402
 from solid_ros.ros.markers import LoopMarkers  # noqa: E402
@@ -58,7 +58,7 @@ def test_publishes_logs_and_draws_each_loop() -> None:
 
 
 def test_loop_line_of_a_verified_loop() -> None:
-    from solid_ros.core.detector import LoopCandidate
+    from solid_ros.core.results import LoopCandidate
 
     c = LoopCandidate(9, 2, 5 * SEC + 7, SEC, 0, 0.1, 0.5, 0.2, verified=True,
                       pose=(1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0), fitness=0.8, rmse=0.05)

@@ -40,7 +40,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.detector import LoopDetector  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
 from solid_ros.formats.pointcloud2 import cloud_to_xyz  # noqa: E402
 from solid_ros.ros import health as health_module  # noqa: E402
@@ -148,8 +148,8 @@ def offline_closure(messages: list[tuple[str, Any]], config: SolidConfig
     """What the core's loop closure (detector and, with ``backend``, the pose graph and its
     candidates by position) finds for the same clouds, each with the odometry message of its
     stamp as the node pairs it; and its detector after them."""
-    from solid_ros.core.closure import LoopClosure
-    from solid_ros.core.odometry import StampedOdometry
+    from solid_ros.core.flow.closure import LoopClosure
+    from solid_ros.core.odometry.track import StampedOdometry
     from solid_ros.formats.poses import odometry_to_pose
 
     closure = LoopClosure(LoopDetector(config))

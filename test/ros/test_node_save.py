@@ -25,7 +25,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from spinning import Spinner  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from solid_ros.core.persistence import is_database  # noqa: E402
+from solid_ros.core.database.persistence import is_database  # noqa: E402
 from solid_ros.ros.node import SolidNode  # noqa: E402
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from solid_ros.core.errors import PoseError
-from solid_ros.core.odometry import usable_covariance
+from solid_ros.core.odometry.track import usable_covariance
 from solid_ros.ros.odom_wait import OdometryWait
 
 SEC = 1_000_000_000

@@ -7,7 +7,7 @@ from collections import Counter
 
 import numpy as np
 
-from solid_ros.core.keyframes import KeyframeCloud
+from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.formats.peers import CloudReply
 from solid_ros.ros.peer_fetch import MAX_TIMEOUTS, CloudFetches, Pending
 

@@ -36,9 +36,9 @@ from std_msgs.msg import Float64MultiArray, UInt8MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
-from solid_ros.core.descriptor import describe  # noqa: E402
+from solid_ros.core.database.clouds import KeyframeCloud  # noqa: E402
+from solid_ros.core.descriptor.solid import describe  # noqa: E402
 from solid_ros.core.geometry import quaternion_to_matrix  # noqa: E402
-from solid_ros.core.keyframes import KeyframeCloud  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
 from solid_ros.formats.peers import (  # noqa: E402
     CloudReply,

@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.descriptor import describe
-from solid_ros.core.detector import LoopDetector
-from solid_ros.core.keyframes import KeyframeCloud
+from solid_ros.core.database.clouds import KeyframeCloud
+from solid_ros.core.descriptor.solid import describe
+from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.ros.shared_detector import IN_FLIGHT, SharedDetector
 
 SEC = 1_000_000_000

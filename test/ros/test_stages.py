@@ -7,10 +7,10 @@ from typing import Any
 
 import numpy as np
 
+from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopDetector
-from solid_ros.core.odometry import OdomSample
-from solid_ros.core.proposals import GraphHint
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.odometry.track import OdomSample
 from solid_ros.ros.health import InputHealth
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Stages, Verified

@@ -8,7 +8,8 @@ import dataclasses
 import numpy as np
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopCandidate, LoopDetector, ScanResult
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.ros.stamp_guard import StampGuard
 
 SEC = 1_000_000_000

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.descriptor import describe
+from solid_ros.core.descriptor.solid import describe
 from solid_ros.core.errors import ConfigError
 from solid_ros.sim import Drive, DriveConfig, StreetGrid, avia_like, build_scene, cast_scan, hdl64
 from solid_ros.sim.drive import pose_matrix

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopCandidate, LoopDetector
 from solid_ros.core.errors import BagError, ConfigError
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.results import LoopCandidate
 from solid_ros.formats.pointcloud2 import cloud_to_xyz
 from solid_ros.sim import (
     Drive,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 
-from solid_ros.core.detector import LoopCandidate
+from solid_ros.core.results import LoopCandidate
 from solid_ros.formats.candidates import CANDIDATE_FIELDS
 from solid_ros.tools.fleet import FLEET_CSV_COLUMNS
 from solid_ros.tools.outputs import CSV_COLUMNS, CSV_EXTRA, CSV_LAYOUT, candidate_cells

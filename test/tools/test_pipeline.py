@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from solid_ros.core.closure import LoopClosure
 from solid_ros.core.config import NodeConfig, SolidConfig
-from solid_ros.core.detector import LoopDetector
+from solid_ros.core.flow.closure import LoopClosure
+from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.geometry import pose_to_vector
-from solid_ros.core.odometry import OdomSample
+from solid_ros.core.odometry.track import OdomSample
 from solid_ros.formats.bags import CloudScan, write_cloud_bag
 from solid_ros.tools.options import ReplayOptions
 from solid_ros.tools.pipeline import ReplayPipeline, ScanLog, published_best
@@ -142,7 +142,7 @@ HKU1_CLOUDS = 16
 def hku1_bags(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """The first hku1 clouds, with the recorded odometry (the reference) and without any."""
     pytest.importorskip('kiss_icp', reason='kiss-icp is not installed')
-    from solid_ros.core.odometry import nearest_stamp
+    from solid_ros.core.odometry.track import nearest_stamp
     from solid_ros.formats.bags import Bag
 
     with Bag(shared_data / 'hku1' / 'bag') as bag:

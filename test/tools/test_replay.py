@@ -14,9 +14,9 @@ from bad_inputs import unusable_clouds
 from project_paths import CONFIG_DIR  # noqa: E402
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.detector import LoopDetector
 from solid_ros.core.errors import ConfigError
-from solid_ros.core.verification import REASONS
+from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.verification.verifier import REASONS
 from solid_ros.formats.bags import POINTCLOUD2, BagWriter, write_cloud_bag
 from solid_ros.formats.pointcloud2 import CloudLayout, encode_points
 from solid_ros.tools.plots import PLOT_FILES
@@ -364,8 +364,8 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
     assert result.report['topic'] == '/points' and result.report['odom_topic'] == '/odom_slam'
     # The replayed candidates are exactly those of the loop closure (the detector with the
     # pose graph's hint: the preset's back end is on) on the bag's clouds and odometry.
-    from solid_ros.core.closure import LoopClosure
-    from solid_ros.core.odometry import OdomSample
+    from solid_ros.core.flow.closure import LoopClosure
+    from solid_ros.core.odometry.track import OdomSample
     from solid_ros.formats.bags import Bag
 
     closure = LoopClosure(LoopDetector(cfg))

@@ -1,0 +1,386 @@
+"""Loop candidates by position: earlier keyframes near the query in the pose graph's estimate.
+
+The descriptor finds a place by how it looks; the back end knows where the keyframes are.
+Systems people pick find most of their loops by position (LIO-SAM and FAST-LIO-SAM search
+the keyframes within 15-35 m of the current pose, GLIM within 5 m), which finds what the
+descriptor misses: places seen from another heading or offset. Here the two are combined:
+besides the descriptor's candidates, the keyframes near the query in the corrected estimate
+are verified by the same tests, and every candidate the graph knows gets its relative pose
+from the graph as the first start of the coarse registration.
+
+Rule, for query keyframe ``q`` with odometry pose ``O_q`` and a :class:`GraphHint` (the graph
+after keyframe ``q - 1``):
+
+* Predicted pose ``P_q = C O_q``, ``C = T_map_odom`` of the newest keyframe in the graph.
+* Radius ``r = min(graph_candidate_max_radius_m, graph_candidate_radius_m +
+  graph_candidate_sigmas * sigma)``, ``sigma`` the query's position uncertainty: the square
+  root of the largest eigenvalue of the newest keyframe's marginal position covariance, plus
+  the odometry step from it to the query (the back end's noise model, and the newest pose's
+  heading uncertainty times the step's length); the cap when the graph gives no covariance.
+* Eligible: this session's keyframes ``j`` in the graph outside the detector's exclusion
+  window (``j < q - exclude_recent_frames``, ``stamp_q - stamp_j >= exclude_recent_sec``)
+  with at least ``graph_candidate_min_path_m`` of odometry path driven from ``j`` to ``q``
+  (summed over the graph's keyframes: a loop to a keyframe just driven past tells the graph
+  nothing the odometry does not).
+* Those within ``r`` of ``P_q`` (3-D distance of the sensor positions), nearest first, at
+  most ``graph_candidates``; each with the graph's relative pose ``T_mq = P_j^-1 P_q``.
+* Seen places (``view_keyframes``): a narrow field of view sees the place ahead of the
+  sensor, not where it stands, so a street driven the other way, or crossed, is seen from
+  keyframes tens of metres from the query, and one beside it may see nothing in common. Each
+  keyframe's view centre ``c`` is the centroid of its keyframe cloud (sensor frame); keyframes
+  whose view centre ``P_j c_j`` lies within ``r_v`` of the query's ``P_q c_q`` are proposed
+  too, nearest first, at most ``graph_candidates``, unless a keyframe proposed by position
+  already saw it (its view centre lies within ``r_v`` too: nothing new to try). Only for a
+  one-sided view: the query's view centre lies farther from its sensor than its view extent
+  ``e`` (below). A spinning sensor's view centre lies within a tenth to a third of its extent
+  from the sensor (simulated drives), where the position rule already stands for the view; a
+  70-90 degree view's lies 1.2-2.3 extents ahead (streets, the room).
+  ``r_v`` is ``r`` with the view centre as the lever of the heading uncertainty (its offset
+  from the newest keyframe, where the sensor position is used for ``r``) and the query's view
+  extent ``e`` (RMS horizontal distance of its cloud's points from their centroid) as the
+  floor when larger than ``graph_candidate_radius_m``: two views share most of what they
+  saw while their centres lie within one extent (about 14 m for the simulated Avia on
+  streets, 2-3 m in a room), capped at ``graph_candidate_max_radius_m``.
+* A loop the graph proposed must keep the graph's relative heading within
+  :func:`heading_tolerance_deg` (``graph_candidate_sigmas`` of the query's heading
+  uncertainty plus 2 degrees): in a symmetric room the registration can also fit the place
+  turned by 180 degrees (seen in the simulator), which only the descriptor's own evidence or
+  the graph tells apart, and a keyframe proposed by position has only the graph. Nor may it
+  move the query's view centre from where the graph put it (:func:`guess_deviation`) by more
+  than 1 m (0.5 m between two tight-space keyframes) plus ``graph_candidate_sigmas`` of the
+  query's sigma relative to the match: a slide along a room's shelves
+  (:func:`solid_ros.core.candidates.hits.strayed_from_guess`).
+
+* Known place (:func:`knows_place`): a loop that puts the query's view centre where the
+  graph predicted it, within one coarse voxel counting ``graph_candidate_sigmas`` sigmas of
+  the query's position relative to the match keyframe (:meth:`GraphHint.sigma_to`: the
+  graph's joint marginal of the two, else the newest keyframe's own), rests on the object
+  the graph expected, not another like it.
+
+Plain numpy: the node hands the hint over from an immutable snapshot (its relative
+covariances are asked of the graph through a callable, under the back end's lock); nothing
+here imports gtsam.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.backend.noise import model_covariance
+from solid_ros.core.config import SolidConfig
+
+if TYPE_CHECKING:
+    from solid_ros.core.results import Keyframe
+
+__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'eligible', 'guess_deviation',
+           'heading_tolerance_deg', 'knows_place', 'near_keyframes', 'position_sigma',
+           'search_radius', 'view_keyframes']
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+# The match keyframe's own heading error in the graph, beyond the query's marginal.
+HEADING_FLOOR_DEG = 2.0
+
+
+def _frozen(a: npt.ArrayLike, dtype: type, shape: tuple[int, ...]) -> npt.NDArray[np.generic]:
+    out: npt.NDArray[np.generic] = np.array(a, dtype=dtype).reshape(shape)
+    out.flags.writeable = False  # shared between threads: nobody may change it
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class GraphHint:
+    """What the back end knows when a keyframe is verified (read-only arrays).
+
+    Attributes:
+        indices: (N,) this session's keyframes in the graph, ascending.
+        stamps_ns: (N,) their stamps.
+        poses: (N, 4, 4) their corrected poses ``T_map_sensor``.
+        odom: (N, 4, 4) their odometry poses ``T_odom_sensor``.
+        correction: ``T_map_odom`` of the newest keyframe.
+        covariance: 6x6 marginal covariance of the newest keyframe's pose (ROS order), or
+            None when unknown.
+        relative: ``relative(j)``: 6x6 covariance (ROS order) of keyframe ``j``'s pose
+            relative to the newest one, ``X_j^-1 X_newest`` (the graph's joint marginal, asked
+            of gtsam on demand), or None when unknown; None: only ``covariance`` is known.
+    """
+
+    indices: IntArray
+    stamps_ns: IntArray
+    poses: FloatArray
+    odom: FloatArray
+    correction: FloatArray
+    covariance: FloatArray | None = None
+    relative: Callable[[int], FloatArray | None] | None = None
+
+    @classmethod
+    def of(cls, indices: npt.ArrayLike, stamps_ns: npt.ArrayLike, poses: npt.ArrayLike,
+           odom: npt.ArrayLike, correction: npt.ArrayLike,
+           covariance: npt.ArrayLike | None = None,
+           relative: Callable[[int], FloatArray | None] | None = None) -> GraphHint:
+        """A hint holding read-only copies of the arrays."""
+        n = len(np.asarray(indices).reshape(-1))
+        cov = None if covariance is None else _frozen(covariance, np.float64, (6, 6))
+        return cls(_frozen(indices, np.int64, (n,)),  # type: ignore[arg-type]
+                   _frozen(stamps_ns, np.int64, (n,)),  # type: ignore[arg-type]
+                   _frozen(poses, np.float64, (n, 4, 4)),  # type: ignore[arg-type]
+                   _frozen(odom, np.float64, (n, 4, 4)),  # type: ignore[arg-type]
+                   _frozen(correction, np.float64, (4, 4)), cov,  # type: ignore[arg-type]
+                   relative)
+
+    @classmethod
+    def from_keyframes(cls, keyframes: Sequence[Keyframe], correction: npt.ArrayLike,
+                       covariance: npt.ArrayLike | None = None,
+                       relative: Callable[[int], FloatArray | None] | None = None
+                       ) -> GraphHint:
+        """A hint from :meth:`~solid_ros.core.backend.posegraph.PoseGraph.keyframes`."""
+        return cls.of([k.index for k in keyframes], [k.stamp_ns for k in keyframes],
+                      np.array([k.pose for k in keyframes]).reshape(-1, 4, 4),
+                      np.array([k.odom for k in keyframes]).reshape(-1, 4, 4),
+                      correction, covariance, relative)
+
+    def predict(self, odom_pose: npt.ArrayLike) -> FloatArray:
+        """Corrected pose ``T_map_odom @ odom_pose`` of a pose of the odometry."""
+        out: FloatArray = self.correction @ np.asarray(odom_pose, dtype=np.float64)
+        return out
+
+    def pose_of(self, index: int) -> FloatArray | None:
+        """Corrected pose of keyframe ``index`` (None: not in the graph)."""
+        k = int(np.searchsorted(self.indices, index))
+        if k < len(self.indices) and int(self.indices[k]) == index:
+            out: FloatArray = self.poses[k]
+            return out
+        return None
+
+    def sigma_to(self, index: int, config: SolidConfig, step: npt.ArrayLike | None = None,
+                 view: npt.ArrayLike | None = None) -> float:
+        """The query's position sigma relative to keyframe ``index`` (:func:`position_sigma`
+        of :attr:`relative`), or the newest keyframe's own when the graph gives no relative
+        covariance. The own marginal also holds what both share since the first keyframe:
+        on the simulator's narrow-view streets it was 5-20 times the error of the graph's
+        guess (median 0.05 sigma), which made the known place (:func:`knows_place`) rare."""
+        cov = None if self.relative is None else self.relative(index)
+        return position_sigma(self.covariance if cov is None else cov, config, step, view)
+
+    @cached_property
+    def path_m(self) -> FloatArray:
+        """Odometry path driven up to each keyframe, metres (from the first one)."""
+        steps = np.linalg.norm(np.diff(self.odom[:, :3, 3], axis=0), axis=1)
+        out: FloatArray = np.concatenate(([0.0], np.cumsum(steps)))
+        return out
+
+
+@dataclass(frozen=True)
+class GraphCandidate:
+    """An earlier keyframe near the query in the graph's estimate.
+
+    Attributes:
+        index: the keyframe's index in this session.
+        stamp_ns: its stamp.
+        distance_m: its distance from the query's predicted position, metres.
+        T_mq: the graph's relative pose (query sensor in the keyframe's sensor frame).
+        share: for one proposed by shared structure, the share of the query's coarse
+            structure it holds (:mod:`solid_ros.core.candidates.covisibility`); NaN otherwise.
+    """
+
+    index: int
+    stamp_ns: int
+    distance_m: float
+    T_mq: FloatArray
+    share: float = math.nan
+
+
+def position_sigma(covariance: npt.ArrayLike | None, config: SolidConfig,
+                   step: npt.ArrayLike | None = None,
+                   view: npt.ArrayLike | None = None) -> float:
+    """Standard deviation of the query's predicted position, metres (see the module
+    docstring); ``math.inf`` without a usable covariance.
+
+    Args:
+        covariance: 6x6 marginal covariance (ROS order) of the newest keyframe's pose.
+        config: the back end's odometry model.
+        step: 4x4 odometry step from the newest keyframe to the query (None: none).
+        view: a point in the query's sensor frame (its view centre): the heading uncertainty
+            then acts on its offset from the newest keyframe instead of the sensor's.
+    """
+    if covariance is None:
+        return math.inf
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape != (6, 6) or not bool(np.all(np.isfinite(cov))):
+        return math.inf
+    var = _largest(cov[:3, :3])
+    T = np.eye(4) if step is None else np.asarray(step, dtype=np.float64)
+    if step is not None:
+        var += _largest(model_covariance(T, config)[:3, :3])
+    if step is not None or view is not None:
+        lever = T[:3, 3] if view is None else T[:3, :3] @ np.asarray(view, np.float64) + T[:3, 3]
+        var += float(lever @ lever) * _largest(cov[3:, 3:])
+    return math.sqrt(var)
+
+
+def search_radius(covariance: npt.ArrayLike | None, config: SolidConfig,
+                  step: npt.ArrayLike | None = None, view: npt.ArrayLike | None = None,
+                  floor: float = 0.0) -> float:
+    """The search radius around a query (see the module docstring).
+
+    Args:
+        covariance: 6x6 marginal covariance (ROS order) of the newest keyframe's pose.
+        config: the ``graph_candidate_*`` settings and the back end's odometry model.
+        step: 4x4 odometry step from the newest keyframe to the query (None: none).
+        view: the query's view centre (sensor frame, 3-vector): the heading uncertainty then
+            acts on its offset from the newest keyframe instead of the sensor's.
+        floor: radius when certain, if larger than ``graph_candidate_radius_m``.
+    """
+    cap = config.graph_candidate_max_radius_m
+    sigma = position_sigma(covariance, config, step, view)
+    if not math.isfinite(sigma):
+        return cap
+    return min(cap, max(config.graph_candidate_radius_m, floor)
+               + config.graph_candidate_sigmas * sigma)
+
+
+def heading_tolerance_deg(covariance: npt.ArrayLike | None, config: SolidConfig,
+                          step: npt.ArrayLike | None = None) -> float:
+    """How far a loop's heading may lie from the graph's relative heading of a keyframe it
+    proposed, degrees: ``graph_candidate_sigmas`` standard deviations of the query's heading
+    (the newest keyframe's marginal yaw variance plus the odometry model's over ``step``)
+    plus ``HEADING_FLOOR_DEG`` for the match's own uncertainty; 180 without a covariance."""
+    if covariance is None:
+        return 180.0
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape != (6, 6) or not bool(np.all(np.isfinite(cov))):
+        return 180.0
+    var = max(float(cov[5, 5]), 0.0)
+    if step is not None:
+        var += max(float(model_covariance(np.asarray(step, dtype=np.float64), config)[5, 5]),
+                   0.0)
+    return min(180.0, HEADING_FLOOR_DEG
+               + config.graph_candidate_sigmas * math.degrees(math.sqrt(var)))
+
+
+def knows_place(guess: npt.ArrayLike, T_mq: npt.ArrayLike, centre: npt.ArrayLike,
+                sigma_m: float, heading_tol_deg: float, config: SolidConfig,
+                coarse_voxel: float | None = None) -> bool:
+    """Whether the graph's guess pins a loop to one object (see the module docstring).
+
+    Args:
+        guess: the graph's 4x4 ``T_mq`` (levelled frames).
+        T_mq: the registered 4x4 ``T_mq`` (same frames).
+        centre: the query's view centre in its (levelled) frame, 3-vector.
+        sigma_m: the query's position sigma with that centre as the lever
+            (:func:`position_sigma`; ``math.inf``: unknown).
+        heading_tol_deg: :func:`heading_tolerance_deg`.
+        config: ``graph_candidate_sigmas`` and ``verify_coarse_voxel_size``.
+        coarse_voxel: the pair's coarse grid instead of ``verify_coarse_voxel_size`` (two
+            tight-space keyframes register on a finer one).
+    """
+    if not math.isfinite(sigma_m):
+        return False
+    G, T = np.asarray(guess, dtype=np.float64), np.asarray(T_mq, dtype=np.float64)
+    deviation = guess_deviation(G, T, centre)
+    diff = np.linalg.solve(G, T)
+    turn = math.degrees(abs(math.atan2(diff[1, 0], diff[0, 0])))
+    reach = config.verify_coarse_voxel_size if coarse_voxel is None else coarse_voxel
+    return (deviation + config.graph_candidate_sigmas * sigma_m <= reach
+            and turn <= heading_tol_deg)
+
+
+def guess_deviation(guess: npt.ArrayLike, T_mq: npt.ArrayLike, centre: npt.ArrayLike) -> float:
+    """How far the registered ``T_mq`` moves the query's view ``centre`` from where the
+    graph's ``guess`` puts it, metres (levelled frames)."""
+    G, T = np.asarray(guess, dtype=np.float64), np.asarray(T_mq, dtype=np.float64)
+    c = np.asarray(centre, dtype=np.float64).reshape(3)
+    return float(np.linalg.norm((T[:3, :3] - G[:3, :3]) @ c + T[:3, 3] - G[:3, 3]))
+
+
+def _largest(block: FloatArray) -> float:
+    """Largest eigenvalue of a symmetric block (0 when negative)."""
+    return max(float(np.linalg.eigvalsh(0.5 * (block + block.T))[-1]), 0.0)
+
+
+def eligible(hint: GraphHint, query_index: int, stamp_ns: int, odom: FloatArray,
+             config: SolidConfig) -> npt.NDArray[np.bool_]:
+    """The keyframes outside the exclusion window with enough path driven since them."""
+    path = hint.path_m[-1] + float(np.linalg.norm(odom[:3, 3] - hint.odom[-1, :3, 3]))
+    ok: npt.NDArray[np.bool_] = hint.indices < query_index - config.exclude_recent_frames
+    ok &= path - hint.path_m >= config.graph_candidate_min_path_m
+    if config.exclude_recent_sec > 0.0:
+        ok &= stamp_ns - hint.stamps_ns >= round(config.exclude_recent_sec * 1e9)
+    return ok
+
+
+def _nearest(hint: GraphHint, ok: npt.NDArray[np.bool_], dist: FloatArray,
+             predicted: FloatArray, count: int) -> list[GraphCandidate]:
+    picked = np.flatnonzero(ok)
+    picked = picked[np.argsort(dist[picked], kind='stable')][:count]
+    return [GraphCandidate(int(hint.indices[k]), int(hint.stamps_ns[k]), float(dist[k]),
+                           np.linalg.solve(hint.poses[k], predicted)) for k in picked]
+
+
+def near_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: npt.ArrayLike,
+                   config: SolidConfig) -> list[GraphCandidate]:
+    """The eligible keyframes near the query's predicted pose, nearest first.
+
+    Args:
+        hint: the graph's estimate.
+        query_index: the query keyframe's index.
+        stamp_ns: its stamp.
+        odom_pose: its 4x4 odometry pose.
+        config: ``graph_candidate*`` and the exclusion window.
+    """
+    if config.graph_candidates <= 0 or len(hint.indices) == 0:
+        return []
+    odom = np.asarray(odom_pose, dtype=np.float64)
+    predicted = hint.predict(odom)
+    ok = eligible(hint, query_index, stamp_ns, odom, config)
+    dist = np.linalg.norm(hint.poses[:, :3, 3] - predicted[:3, 3], axis=1)
+    ok &= dist <= search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom))
+    return _nearest(hint, ok, dist, predicted, config.graph_candidates)
+
+
+def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: npt.ArrayLike,
+                   view: npt.ArrayLike, extent: float, views: Mapping[int, FloatArray],
+                   config: SolidConfig, near: Sequence[int] = ()) -> list[GraphCandidate]:
+    """The eligible keyframes whose view centre lies near the query's, nearest first
+    (``distance_m``: between the view centres); none when one of ``near`` is among them or
+    the query's view is not one-sided (see the module docstring).
+
+    Args:
+        hint: the graph's estimate.
+        query_index: the query keyframe's index.
+        stamp_ns: its stamp.
+        odom_pose: its 4x4 odometry pose.
+        view: its view centre (sensor frame, 3-vector).
+        extent: its view extent, metres (see the module docstring).
+        views: view centres of earlier keyframes by index (a keyframe without one is not
+            proposed).
+        config: ``graph_candidate*`` and the exclusion window.
+        near: the keyframes already proposed by position.
+    """
+    c_q = np.asarray(view, dtype=np.float64).reshape(3)
+    if (config.graph_candidates <= 0 or len(hint.indices) == 0
+            or not float(np.linalg.norm(c_q)) > extent):
+        return []
+    odom = np.asarray(odom_pose, dtype=np.float64)
+    predicted = hint.predict(odom)
+    centres = np.full((len(hint.indices), 3), np.nan)
+    for k, j in enumerate(hint.indices.tolist()):
+        c = views.get(j)
+        if c is not None:
+            centres[k] = c
+    seen = np.einsum('nij,nj->ni', hint.poses[:, :3, :3], centres) + hint.poses[:, :3, 3]
+    with np.errstate(invalid='ignore'):
+        dist = np.linalg.norm(seen - (predicted[:3, :3] @ c_q + predicted[:3, 3]), axis=1)
+    ok = eligible(hint, query_index, stamp_ns, odom, config) & np.isfinite(dist)
+    ok &= dist <= search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom),
+                                c_q, extent)
+    if bool(np.any(ok & np.isin(hint.indices, np.asarray(near, dtype=np.int64)))):
+        return []
+    return _nearest(hint, ok, dist, predicted, config.graph_candidates)

@@ -1,0 +1,771 @@
+"""Loop detector: keyframe gating, descriptor, database query, verification, insertion.
+
+One call per scan, :meth:`LoopDetector.process`, levels the scan (sensor mounting), describes
+it, queries the database for earlier places (the scan itself is added afterwards, so it never
+matches itself), verifies the candidates by registration (``verify``) and returns one
+:class:`ScanResult`: whether the scan became a keyframe, the loops to publish, every candidate
+looked at, the best descriptor match and the stage times. The detector keeps no per-scan
+result of its own, so the node's two threads, the replay and the back end read the same value.
+The same work split in two, :meth:`LoopDetector.propose` (descriptor and database) and
+:meth:`LoopDetector.verify` (registration), lets a node run verification on another thread;
+calling ``verify(propose(...))`` for every kept scan in order gives exactly what ``process``
+gives.
+
+Indices: ``query_index`` is the index of the scan among the keyframes this session stored
+(0, 1, 2, ...; gated-out scans get none). ``match_index`` is the index of the matched scan in
+its own session ``match_session`` (for scans loaded from a file, the index they had there).
+
+Candidates: the ``num_candidates`` nearest stored scans by descriptor distance that are below
+``distance_threshold`` and pass the margin test (``min_margin``). The margin of a candidate is
+the distance of the nearest scan outside its ``margin_neighbourhood`` minus its own distance
+(``math.inf`` when there is none); the search fetches ``num_candidates + 2 *
+margin_neighbourhood + 1`` scans so that this next-best distinct place is always among them.
+
+Candidates by position (:mod:`solid_ros.core.candidates.position`): given the pose graph's estimate
+(a :class:`~solid_ros.core.candidates.position.GraphHint`, from
+:class:`~solid_ros.core.flow.closure.LoopClosure`
+or the node's graph snapshot) with ``verify`` and ``graph_candidates`` on, :meth:`verify` adds
+the earlier keyframes of this session near the query in the corrected estimate (source
+``'graph'``), and, when none of those saw the query's place and the query's view is
+one-sided, the keyframes whose view centre (their cloud's centroid) lies near the query's: a
+narrow field of view sees the place ahead, so a street driven the other way is seen from
+keyframes tens of metres off. Every candidate
+the graph knows is registered from the graph's relative pose first. Those near keyframes (the
+graph's, and the descriptor's among them) are verified first, then those by view; the
+descriptor's other candidates only when they leave fewer than ``max_candidates`` places
+verified. Without a hint nothing changes.
+
+Registered steps (``backend_step_registration`` 'on'; 'auto' is resolved by the replay and the
+node: on with KISS-ICP run on the same clouds): after its loops, :meth:`verify` registers the
+keyframe to this session's previous one, started from the odometry step, through the same
+coarse and fine stages and tests except the single-object test (the place is known), and
+returns it as :attr:`ScanResult.step` for the pose graph (never published).
+
+Acceptance with ``verify`` (see :mod:`solid_ros.core.verification.verifier`): every candidate goes
+through the coarse registration; those that pass are verified in order of coarse overlap,
+best first, until ``max_candidates`` distinct places (outside each other's
+``margin_neighbourhood``) are verified. Without ``verify``: candidates in distance order, each
+a distinct place, at most ``max_candidates``. In both modes nothing is published within
+``min_loop_gap`` queries of the last published loop.
+
+Odometry check (:mod:`solid_ros.core.odometry.track`): a loop between two keyframes of this session
+that both came with a pose is refused (reason ``'odometry'``) when its translation differs
+from the odometry's by more than ``odom_check_drift`` times the path driven between them plus
+``odom_check_slack_m``; with ``verify`` the next candidate is tried instead.
+
+Unusable clouds: a cloud with no point that is finite and inside the range gate, the FOV clip
+and ``max_distance`` (all NaN, all beyond range, empty, ...) would give an all-zero R-SOLiD
+that never matches, yet take an index and move the keyframe gate and the exclusion window.
+``process`` and ``propose`` refuse it with :class:`CloudError` before anything changes, gated
+out or not, as ``process_descriptor`` refuses an all-zero R-SOLiD. Peers' and loaded scans may
+still be all zero (the database stores them; they never match).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import replace
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from solid_ros.core.candidates.covisibility import StructureIndex, coarse_structure
+from solid_ros.core.candidates.hits import (
+    STRAY_FLOOR_M,
+    hit_knows_place,
+    shared_hits,
+    strayed_from_guess,
+    turned_from_guess,
+    view_centre,
+    with_graph_hits,
+)
+from solid_ros.core.candidates.position import GraphHint
+from solid_ros.core.candidates.proposal import Hit, Proposal
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.database.clouds import CloudStore, KeyframeCloud
+from solid_ros.core.database.descriptors import DescriptorDatabase, unit_vector
+from solid_ros.core.descriptor.matching import estimate_yaw, heading_hypotheses
+from solid_ros.core.descriptor.mount import Mount
+from solid_ros.core.descriptor.solid import describe, preprocess, voxel_downsample
+from solid_ros.core.errors import CloudError, ConfigError
+from solid_ros.core.geometry import (
+    pose_to_vector,
+    rot_z,
+    rotation_deg,
+    vector_to_matrix,
+)
+from solid_ros.core.odometry.track import OdometryPath, disagreement
+from solid_ros.core.reasons import Reason
+from solid_ros.core.results import (
+    NAN_COV,
+    Descriptor,
+    LoopCandidate,
+    Match,
+    ScanResult,
+    Source,
+    StageTimes,
+)
+from solid_ros.core.stamps import check_stamp
+from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
+from solid_ros.core.verification.registration import Query, coarsened
+from solid_ros.core.verification.verifier import TIGHT_GRID, CoarseResult, Verification, Verifier
+
+__all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
+           'Source', 'StageTimes']
+
+FloatArray = npt.NDArray[np.float64]
+# (robot = its session id, index, stamp_ns) of a peer's keyframe -> its cloud, or the reason
+# there is none.
+CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | Reason']
+# A keyframe proposed by position alone has no descriptor evidence, so its alignment must be
+# better constrained: in the simulator's cluttered room one at 0.0079 (bar 0.0075) was 5 deg
+# off; hku1's correct graph loops start at 0.0076, then 0.0106.
+GRAPH_CONSTRAINT_FACTOR = 1.25
+
+
+class LoopDetector:
+    """SOLiD loop-closure detector over a rolling database of keyframes.
+
+    Args:
+        config: settings; ``SolidConfig()`` when omitted.
+        database: an existing database (e.g. loaded from a file) built with the same
+            descriptor settings; a new empty one when omitted.
+        clouds: keyframe clouds of ``database`` (e.g. loaded with it); an empty store when
+            omitted.
+    """
+
+    def __init__(self, config: SolidConfig | None = None,
+                 database: DescriptorDatabase | None = None,
+                 clouds: CloudStore | None = None) -> None:
+        self._config = config if config is not None else SolidConfig()
+        cfg = self._config
+        self.database = database if database is not None else DescriptorDatabase(cfg)
+        self.clouds = clouds if clouds is not None else CloudStore(
+            cfg.cloud_capacity, int(cfg.cloud_memory_mb * 1e6))
+        self.verifier = Verifier(cfg) if cfg.verify else None
+        self._mount = Mount(cfg)
+        # The descriptor's gate without the voxel grid (replace() costs about 0.5 ms).
+        self._gate_cfg = cfg.replace(voxel_size=0.0)
+        self.reasons: Counter[str] = Counter()  # verification outcomes so far
+        self._kf_stamp: int | None = None
+        self._kf_pose: FloatArray | None = None
+        self._last_loop_query: int | None = None
+        self._path = OdometryPath(cfg.capacity)  # path driven up to each own keyframe
+        # Database sequence number of each own keyframe, by index: written by propose, read
+        # by verify (on another thread in the node, where the database's own map may move).
+        self._own_seqs: dict[int, int] = {}
+        # View centre (keyframe cloud centroid, sensor frame) of each own keyframe, by index,
+        # for candidates by what they saw (solid_ros.core.candidates.position); written and read
+        # alike.
+        self._views: dict[int, FloatArray] = {}
+        # Coarse structure of each own keyframe, for candidates by what they share
+        # (solid_ros.core.candidates.covisibility): kept only with the back end, for as many
+        # keyframes as
+        # clouds (a keyframe without its cloud cannot be verified), a tenth of their size.
+        self._structures = StructureIndex(self._config.cloud_capacity)
+        # Where clouds of other robots' keyframes come from (the node asks the owner); it
+        # returns the cloud or the reason there is none. None: such candidates stay unverified.
+        self.fetch_cloud: CloudFetcher | None = None
+        self._loaded = self.database.sessions() - {cfg.session_id}
+
+    @property
+    def config(self) -> SolidConfig:
+        """Current settings."""
+        return self._config
+
+    @property
+    def num_keyframes(self) -> int:
+        """Keyframes stored by this session so far (the next ``query_index``)."""
+        return self.database.session_count
+
+    def reconfigure(self, config: SolidConfig) -> None:
+        """Switch to new settings; only runtime-tunable ones may differ.
+
+        Raises:
+            ConfigError: a read-only setting differs (the message names it).
+        """
+        for spec in SolidConfig.specs():
+            old, new = getattr(self._config, spec.name), getattr(config, spec.name)
+            if spec.read_only and old != new:
+                raise ConfigError(f'{spec.name} is read-only while running '
+                                  f'({old!r} -> {new!r})')
+        self._config = config
+        self._gate_cfg = config.replace(voxel_size=0.0)
+        if self.verifier is not None:
+            self.verifier.reconfigure(config)
+
+    def is_keyframe(self, stamp_ns: int, pose: FloatArray | None = None) -> bool:
+        """Whether a scan at ``stamp_ns`` (and ``pose`` as from :func:`pose_to_vector`)
+        would be kept.
+
+        The first scan is always kept, and so is every scan when all criteria are off. A scan
+        is kept when ``keyframe_min_sec`` passed since the last keyframe, or, with poses for
+        both, when it moved ``keyframe_min_distance`` or turned ``keyframe_min_rotation_deg``.
+        When no enabled criterion can be evaluated (pose criteria only, but no poses), the
+        scan is kept rather than silently dropping everything. A stamp earlier than the last
+        keyframe's (time jumped back) keeps the scan.
+        """
+        cfg = self._config
+        if self._kf_stamp is None:
+            return True
+        use_time = cfg.keyframe_min_sec > 0.0
+        use_pose = cfg.keyframe_min_distance > 0.0 or cfg.keyframe_min_rotation_deg > 0.0
+        if not use_time and not use_pose:
+            return True
+        dt = (stamp_ns - self._kf_stamp) * 1e-9
+        if dt < 0.0 or (use_time and dt >= cfg.keyframe_min_sec):
+            return True
+        have_pose = pose is not None and self._kf_pose is not None
+        if use_pose and have_pose:
+            assert pose is not None and self._kf_pose is not None
+            moved = float(np.linalg.norm(pose[:3] - self._kf_pose[:3]))
+            if cfg.keyframe_min_distance > 0.0 and moved >= cfg.keyframe_min_distance:
+                return True
+            turned = rotation_deg(pose[3:], self._kf_pose[3:])
+            return (cfg.keyframe_min_rotation_deg > 0.0
+                    and turned >= cfg.keyframe_min_rotation_deg)
+        return not use_time and not have_pose
+
+    # ------------------------------------------------------------------------------ per scan
+
+    def process(self, points: npt.ArrayLike, stamp_ns: int, pose: Any = None,
+                hint: GraphHint | None = None) -> ScanResult:
+        """Handle one scan: gate, describe, query, store, verify.
+
+        Args:
+            points: (N, 3+) array in the sensor frame.
+            stamp_ns: scan stamp, integer nanoseconds.
+            pose: optional sensor pose (see :func:`pose_to_vector`), used for keyframe gating
+                and stored with the scan.
+            hint: the pose graph's estimate, for candidates by position (see :meth:`verify`).
+
+        Returns:
+            The scan's result; ``loops`` are the loops to publish, best first (empty for a
+            gated-out scan).
+
+        Raises:
+            CloudError: no usable point (see the module docstring); nothing changed.
+            SolidError: malformed points or pose.
+        """
+        proposal = self.propose(points, stamp_ns, pose)
+        if proposal is None:
+            vec = pose_to_vector(pose) if pose is not None else None
+            return ScanResult(check_stamp(stamp_ns), pose=vec)
+        return self.verify(proposal, hint)
+
+    def propose(self, points: npt.ArrayLike, stamp_ns: int,
+                pose: Any = None) -> Proposal | None:
+        """Descriptor stage: gate, level, describe, query, store the descriptor.
+
+        Returns:
+            The proposal to hand to :meth:`verify`, or None for a gated-out scan.
+
+        Raises:
+            CloudError: no usable point (see the module docstring); nothing changed.
+            SolidError: malformed points, pose or stamp (outside int64).
+        """
+        stamp = check_stamp(stamp_ns)
+        vec = pose_to_vector(pose) if pose is not None else None
+        if not self.is_keyframe(stamp, vec):
+            self._check_usable(self._mount.level(points))  # refused alike, kept or not
+            return None
+        t0 = time.perf_counter()
+        pts = self._mount.level(points)
+        desc = describe(pts, self._config)
+        if desc.num_points == 0:  # every point dropped: the R-SOLiD is all zero
+            raise CloudError(_unusable(np.shape(pts), self._config))
+        cloud = self._keyframe_points(pts) if self.verifier is not None else None
+        tight = cloud is not None and self.verifier is not None and self.verifier.is_tight(cloud)
+        if tight:
+            cloud = self._keyframe_points(pts, tight=True, up=self._mount.upright(vec))
+        t1 = time.perf_counter()
+        proposal = self._propose_descriptor(desc, stamp, vec, cloud)
+        proposal.descriptor, proposal.tight = desc, tight
+        proposal.describe_ms = (t1 - t0) * 1e3
+        proposal.search_ms = (time.perf_counter() - t1) * 1e3
+        return proposal
+
+    def process_descriptor(self, desc: Descriptor, stamp_ns: int,
+                           pose: Any = None) -> ScanResult:
+        """Like :meth:`process` for an already computed descriptor, without gating.
+
+        No keyframe cloud is stored, so with ``verify`` no loop can be verified.
+
+        Raises:
+            CloudError: the R-SOLiD is all zero (or not finite); nothing changed.
+            SolidError: bad stamp or pose.
+        """
+        stamp = check_stamp(stamp_ns)
+        vec = pose_to_vector(pose) if pose is not None else None
+        if not unit_vector(desc.r_solid)[1]:
+            raise CloudError('no usable point: the R-SOLiD is all zero or not finite')
+        return self.verify(self._propose_descriptor(desc, stamp, vec, None))
+
+    def _check_usable(self, points: npt.ArrayLike) -> None:
+        """Raise CloudError unless a point survives the range gate, FOV and max_distance.
+
+        The descriptor's own gate without its voxel grid. Every 64th point first: a real
+        cloud almost always has a usable one among them (0.13 ms instead of 3.8 ms for 121k
+        points on a gated-out scan); only when none does is the whole cloud checked.
+        """
+        arr = np.asarray(points)
+        if arr.ndim == 2 and len(arr) > 64 and self._any_usable(arr[::64]):
+            return
+        if not self._any_usable(arr):
+            raise CloudError(_unusable(np.shape(arr), self._gate_cfg))
+
+    def _any_usable(self, points: npt.ArrayLike) -> bool:
+        cfg = self._gate_cfg
+        kept = preprocess(points, cfg)
+        return bool(np.any(np.hypot(kept[:, 0], kept[:, 1]) < cfg.max_distance))
+
+    def _keyframe_points(self, points: npt.ArrayLike, tight: bool = False,
+                         up: FloatArray | None = None) -> FloatArray:
+        """Range gate and FOV clip as for the descriptor, then the verification voxel grid
+        (``tight``: the tight-space one, see ``verify_tight_range``, after dropping the scan's
+        mixed pixels, see :mod:`solid_ros.core.verification.mixed_pixels`), laid out upright when
+        ``up``
+        (see :meth:`Mount.upright`; tight keyframes only)."""
+        gated = preprocess(points, self._gate_cfg)
+        if tight:  # near edges are everywhere in a tight space: their mixed pixels go
+            gated = drop_mixed_pixels(gated)
+        voxel = (TIGHT_GRID if tight else 1.0) * self._config.verify_voxel_size
+        if up is None:
+            return voxel_downsample(gated, voxel)
+        out: FloatArray = voxel_downsample(gated[:, :3] @ up.T, voxel) @ up
+        return out
+
+    def _propose_descriptor(self, desc: Descriptor, stamp: int, vec: FloatArray | None,
+                            cloud: FloatArray | None) -> Proposal:
+        cfg = self._config
+        db = self.database
+        q_index = db.session_count
+        hood = cfg.margin_neighbourhood
+        hits = db.search(desc.r_solid, stamp, cfg.num_candidates + 2 * hood + 1,
+                         exclude_frames=cfg.exclude_recent_frames,
+                         exclude_sec=cfg.exclude_recent_sec)
+
+        def margin_of(hit: Match) -> float:
+            return min((o.distance for o in hits if not _same_place(o, hit, hood)),
+                       default=math.inf) - hit.distance
+
+        best = None
+        if hits:
+            top = hits[0]
+            best = LoopCandidate(
+                query_index=q_index, match_index=top.index, query_stamp_ns=stamp,
+                match_stamp_ns=top.stamp_ns, match_session=top.session, distance=top.distance,
+                yaw=estimate_yaw(desc.heading, db.heading(top.seq), cfg.heading_match),
+                margin=margin_of(top),
+                reason='best')
+        chosen = []
+        for hit in hits[:cfg.num_candidates]:
+            if hit.distance >= cfg.distance_threshold:
+                break
+            margin = margin_of(hit)
+            if cfg.min_margin > 0.0 and margin < cfg.min_margin:
+                continue
+            chosen.append(Hit(hit, margin, db.heading(hit.seq).copy()))
+        seq = db.next_seq
+        db.add(desc.r_solid, desc.heading, stamp, vec)
+        self._own_seqs[q_index] = seq
+        while len(self._own_seqs) > cfg.capacity:
+            del self._own_seqs[next(iter(self._own_seqs))]
+        if cloud is not None and len(cloud):
+            self._views[q_index] = view_centre(cloud, self._mount)
+            while len(self._views) > cfg.capacity:
+                del self._views[next(iter(self._views))]
+        self._path.add(q_index, vec)
+        self._kf_stamp, self._kf_pose = stamp, vec
+        return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
+                        np.asarray(desc.r_solid, dtype=np.float64), vec, chosen, best)
+
+    def verify(self, proposal: Proposal, hint: GraphHint | None = None, *,
+               step: bool = True) -> ScanResult:
+        """Verification stage for one :meth:`propose` result; call in keyframe order.
+
+        Stores the keyframe's cloud, verifies the candidates and applies ``max_candidates``
+        and ``min_loop_gap``; the result's ``attempts`` lists every candidate looked at.
+        With ``step`` (and ``backend_step_registration`` 'on') it also registers the step
+        from the previous keyframe (:meth:`with_step`).
+
+        With a ``hint`` (the pose graph after the previous keyframe), ``graph_candidates`` on,
+        verification on and an odometry pose for the keyframe, the keyframes near it in the
+        graph's estimate, or that saw its place, or that share its structure, join the
+        descriptor's candidates (:mod:`solid_ros.core.candidates.position`,
+        :mod:`solid_ros.core.candidates.covisibility`; appended to ``proposal.hits``, source
+        ``'graph'``), and every candidate the graph places within
+        ``graph_candidate_max_radius_m`` or proposes by view or structure is registered from
+        the graph's relative pose first. They pass the same tests.
+        """
+        t0 = time.perf_counter()
+        cfg = self._config
+        structure = None
+        if self.verifier is not None and proposal.query is None:
+            proposal.query = self.verifier.prepare(
+                proposal.cloud_points if proposal.cloud_points is not None
+                else np.zeros((0, 3)), proposal.tight)
+            if cfg.backend and cfg.graph_candidates > 0:  # only the back end's hint uses it
+                structure = self._structure_of(proposal.query)
+        more: Callable[[], list[Hit]] | None = None
+        if hint is not None and cfg.graph_candidates > 0 and self.verifier is not None:
+            proposal.hits = with_graph_hits(proposal, hint, cfg, self.database, self._own_seqs,
+                                            self._views, self._mount)
+            if structure is not None:
+                more = partial(shared_hits, proposal, hint, cfg, self.database,
+                               self._own_seqs, self._mount, self._structures, structure)
+        gap_blocked = bool(cfg.min_loop_gap and self._last_loop_query is not None
+                           and proposal.query_index - self._last_loop_query < cfg.min_loop_gap)
+        if self.verifier is None:
+            attempts = self._accept_by_descriptor(proposal, gap_blocked)
+        else:
+            attempts = self._accept_by_registration(proposal, gap_blocked, more)
+        if structure is not None:  # after its own search: it shares all with itself
+            self._structures.add(proposal.query_index, structure)
+        taken: list[LoopCandidate] = []
+        for c in attempts:
+            if c.reason not in ('verified', 'descriptor'):
+                continue
+            if len(taken) >= cfg.max_candidates or gap_blocked:
+                break
+            if any(c.match_session == t.match_session
+                   and abs(c.match_index - t.match_index) <= cfg.margin_neighbourhood
+                   for t in taken):
+                continue
+            taken.append(c)
+        if taken:
+            self._last_loop_query = proposal.query_index
+        times = StageTimes(proposal.describe_ms, proposal.search_ms,
+                           (time.perf_counter() - t0) * 1e3)
+        result = ScanResult(proposal.stamp_ns, True, proposal.query_index, proposal.pose,
+                            tuple(taken), tuple(attempts), proposal.best, times,
+                            proposal.descriptor)
+        return self.with_step(result, proposal) if step else result
+
+    def with_step(self, result: ScanResult, proposal: Proposal) -> ScanResult:
+        """``result`` (of :meth:`verify` with ``step=False``) with its registered step, when
+        ``backend_step_registration`` is 'on' (else unchanged): a node publishes the loops
+        first and registers the step for the pose graph after."""
+        if self._config.backend_step_registration != 'on':
+            return result
+        t0 = time.perf_counter()
+        step = self._register_step(proposal)
+        # Timed whenever tried: a step that fails a test cost as much as one that passes.
+        times = replace(result.times, step=(time.perf_counter() - t0) * 1e3)
+        return replace(result, times=times, step=step)
+
+    def _register_step(self, proposal: Proposal) -> LoopCandidate | None:
+        """The keyframe registered to this session's previous one from the odometry step
+        (the loops' coarse and fine stages and tests); None without a pose, a cloud or a
+        verified alignment. It corrects an odometry that ran away between two keyframes."""
+        prev = proposal.query_index - 1
+        seq = self._own_seqs.get(prev)
+        query = proposal.query
+        if (self.verifier is None or query is None or proposal.pose is None or seq is None
+                or not self.database.is_stored(seq)):
+            return None
+        pose_prev = self.database.pose(seq)
+        cloud = self.clouds.get(seq)
+        if pose_prev is None or cloud is None:
+            return None
+        step = np.linalg.solve(vector_to_matrix(pose_prev), vector_to_matrix(proposal.pose))
+        key = (self._config.session_id, seq)
+        fine = self.verifier.fine(query, self.verifier.coarse(
+            query, key, cloud, [], (self._mount.level_pose(np.asarray(step, dtype=np.float64)),)),
+            step=True)
+        if not fine.verified:
+            return None
+        _, _, stamp = self.database.match_info(seq)
+        hit = Hit(Match(seq, prev, self._config.session_id, stamp, math.nan), math.nan,
+                  np.zeros(0, dtype=np.float32), 'step')
+        return self._candidate(proposal, hit, 0.0, fine)
+
+    def _candidate(self, proposal: Proposal, hit: Hit, yaw: float,
+                   result: Verification | None) -> LoopCandidate:
+        m = hit.match
+        if result is None:
+            T = np.eye(4)
+            T[:3, :3] = rot_z(yaw)
+            return LoopCandidate(proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns,
+                                 m.session, m.distance, yaw, hit.margin,
+                                 pose=self._mount.unlevel_pose(T), source=hit.source)
+        cov: tuple[float, ...] = NAN_COV
+        if result.covariance is not None:
+            cov = tuple(float(v) for v in self._mount.unlevel_cov(result.covariance).ravel())
+        return LoopCandidate(
+            proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns, m.session,
+            m.distance, result.yaw if result.verified else yaw, hit.margin,
+            verified=result.verified, pose=self._mount.unlevel_pose(result.T),
+            fitness=result.fitness, rmse=result.rmse, covariance=cov, reason=result.reason,
+            overlap=result.overlap, conflict=result.conflict, constraint=result.constraint,
+            spread=result.spread, source=hit.source)
+
+    def _odometry_refuses(self, proposal: Proposal, match: Match, T_mq: FloatArray) -> bool:
+        """Whether this session's odometry contradicts the loop ``T_mq`` (sensor frames, not
+        levelled) from the query to ``match``."""
+        cfg = self._config
+        if (cfg.odom_check_drift <= 0.0 or match.session != cfg.session_id
+                or proposal.pose is None):
+            return False
+        pose_m = self.database.pose(match.seq)
+        path = self._path.between(match.index, proposal.query_index)
+        if pose_m is None or path is None:
+            return False
+        allowed = cfg.odom_check_drift * path + cfg.odom_check_slack_m
+        return disagreement(T_mq, proposal.pose, pose_m) > allowed
+
+    def _accept_by_descriptor(self, proposal: Proposal, gap_blocked: bool) -> list[LoopCandidate]:
+        mode = self._config.heading_match
+        out = []
+        for h in proposal.hits:
+            c = self._candidate(proposal, h, estimate_yaw(proposal.heading, h.heading, mode), None)
+            if self._odometry_refuses(proposal, h.match, c.matrix()):
+                c = replace(c, reason='odometry')
+                self.reasons['odometry'] += 1
+            out.append(c)
+        return out
+
+    def _accept_by_registration(self, proposal: Proposal, gap_blocked: bool,
+                                more: Callable[[], list[Hit]] | None = None
+                                ) -> list[LoopCandidate]:
+        """Verify the proposal's hits group by group until ``max_candidates`` places are
+        verified; ``more``: hits to try last, asked only if it comes to them."""
+        verifier = self.verifier
+        assert verifier is not None
+        clouds, fetched = self._candidate_clouds(proposal, gap_blocked)
+        query = proposal.query
+        if query is None:
+            query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
+                                     else np.zeros((0, 3)), proposal.tight)
+            proposal.query = query
+        if query.usable:
+            self.clouds.put(proposal.seq, query.keyframe_cloud())
+        self.clouds.drop_before(self.database.oldest_seq)
+        results: dict[int, Verification] = dict(fetched)
+        yaws: dict[int, float] = {}
+        verified: list[Match] = []
+        # The graph's near keyframes first: registered from its pose they mostly verify at
+        # once, and the rest are then not needed (max_candidates); then those that saw the
+        # query's place from elsewhere, then the descriptor's others, and last, asked only
+        # now, those that share the query's structure.
+        hits = proposal.hits
+        for group in ([i for i, h in enumerate(hits) if h.near],
+                      [i for i, h in enumerate(hits) if h.view and not h.near],
+                      [i for i, h in enumerate(hits) if not (h.near or h.view)]):
+            if gap_blocked or len(verified) >= self._config.max_candidates:
+                break
+            self._register(proposal, query, group, clouds, results, yaws, verified)
+        if more is not None and not gap_blocked and len(verified) < self._config.max_candidates:
+            extra = more()
+            start = len(hits)
+            hits = proposal.hits = hits + extra
+            clouds += [self.clouds.get(h.match.seq) for h in extra]
+            self._register(proposal, query, list(range(start, len(hits))), clouds, results,
+                           yaws, verified)
+        out = []
+        for i, hit in enumerate(hits):
+            res = results.get(i)
+            if res is not None:
+                self.reasons[res.reason] += 1
+                out.append(self._candidate(proposal, hit, yaws.get(i, 0.0), res))
+        out.sort(key=lambda c: (not c.verified, -_nan_to(c.overlap, -1.0)))
+        return out
+
+    def _candidate_clouds(self, proposal: Proposal, gap_blocked: bool
+                          ) -> tuple[list[KeyframeCloud | None], dict[int, Verification]]:
+        """Each hit's stored cloud (a peer's fetched when needed), and the verdicts of peer
+        clouds that did not come."""
+        cfg = self._config
+        clouds: list[KeyframeCloud | None] = []
+        fetched: dict[int, Verification] = {}
+        for i, h in enumerate(proposal.hits):
+            cloud = self.clouds.get(h.match.seq)
+            if (cloud is None and self.fetch_cloud is not None and not gap_blocked
+                    and h.match.session != cfg.session_id
+                    and h.match.session not in self._loaded_sessions()):
+                got = self.fetch_cloud(h.match.session, h.match.index, h.match.stamp_ns)
+                if isinstance(got, KeyframeCloud):
+                    self.clouds.put(h.match.seq, got)
+                    cloud = got
+                else:
+                    fetched[i] = Verification(False, got, np.eye(4))
+            clouds.append(cloud)
+        if proposal.cloud_points is None:  # process_descriptor: nothing to register
+            clouds = [None] * len(clouds)
+        return clouds, fetched
+
+    def _register(self, proposal: Proposal, query: Query, group: list[int],
+                  clouds: list[KeyframeCloud | None], results: dict[int, Verification],
+                  yaws: dict[int, float], verified: list[Match]) -> None:
+        """Coarse stage of the hits ``group``, then the fine stage in order of coarse overlap
+        until ``max_candidates`` distinct places are verified (``verified`` grows)."""
+        verifier = self.verifier
+        assert verifier is not None
+        cfg = self._config
+        coarse = []
+        for i in group:
+            hit = proposal.hits[i]
+            hyps = heading_hypotheses(proposal.heading, hit.heading, cfg.verify_hypotheses,
+                                      cfg.heading_match)
+            yaws[i] = hyps[0][0] if hyps else 0.0
+            if i in results:  # a peer's cloud that did not come
+                continue
+            # The graph's guess first; the heading hypotheses when drift put it too far off.
+            starts = [y for y, _ in hyps]
+            c = verifier.coarse(query, (hit.match.session, hit.match.seq), clouds[i], starts,
+                                () if hit.guess is None else (hit.guess,))
+            if c.rejection is not None:
+                results[i] = c.rejection
+            else:
+                coarse.append((i, c))
+        coarse.sort(key=lambda ic: -ic[1].coarse_overlap)
+        centre = query.points[:, :3].mean(axis=0) if len(query.points) else np.zeros(3)
+        for i, c in coarse:
+            hit = proposal.hits[i]
+            if len(verified) >= cfg.max_candidates:
+                break  # enough distinct places: the rest stay unverified ('skipped')
+            if any(_same_place(hit.match, v, cfg.margin_neighbourhood) for v in verified):
+                continue
+            place = None if hit.guess is None else partial(hit_knows_place, hit, centre, cfg)
+            fine = verifier.fine(query, c, place=place)
+            if fine.verified and (self._odometry_refuses(proposal, hit.match,
+                                                         self._mount.unlevel(fine.T))
+                                  or turned_from_guess(hit, fine.T)
+                                  or strayed_from_guess(hit, centre, cfg, fine.T,
+                                                        _stray_floor(c))):
+                fine = replace(fine, verified=False, reason='odometry', covariance=None)
+            elif (fine.verified and hit.source == 'graph'
+                  and not fine.constraint >= GRAPH_CONSTRAINT_FACTOR * cfg.verify_min_constraint):
+                fine = replace(fine, verified=False, reason='constraint', covariance=None)
+            results[i] = fine
+            if fine.verified:
+                verified.append(hit.match)
+
+    def _structure_of(self, query: Query) -> FloatArray:
+        """A prepared keyframe's structure on the configuration's coarse grid, sensor frame
+        (:func:`~solid_ros.core.candidates.covisibility.coarse_structure`; empty when unusable)."""
+        if not query.usable:
+            return np.zeros((0, 3))
+        out: FloatArray = self._mount.to_sensor(coarse_structure(
+            query.points, query.structure, self._config.verify_coarse_voxel_size))
+        return out
+
+    def _loaded_sessions(self) -> set[int]:
+        """Sessions loaded from a database file (their clouds came with it or not at all)."""
+        return self._loaded
+
+    # -------------------------------------------------------------------------- peer robots
+
+    def add_peer_keyframe(self, robot: int, index: int, stamp_ns: int,
+                          r_solid: npt.ArrayLike, heading: npt.ArrayLike,
+                          pose: Any = None) -> int:
+        """Store another robot's keyframe descriptor so that this robot's queries find it;
+        its cloud is fetched through :attr:`fetch_cloud` only when a query's candidate needs
+        it. A robot's id is its session id in the database (``match_session`` of its loops).
+
+        Returns:
+            Its database sequence number.
+
+        Raises:
+            SolidError: bad stamp, shape or pose, or ``robot`` is this robot's own id.
+        """
+        vec = pose_to_vector(pose) if pose is not None else None
+        return self.database.add_foreign(int(robot), int(index), r_solid, heading,
+                                         check_stamp(stamp_ns), vec)
+
+    def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
+                                                      FloatArray | None]]:
+        """The newest ``limit`` stored keyframes of this session as ``(index, stamp_ns,
+        R-SOLiD, heading, pose or None)``, oldest first (unit vectors, as stored)."""
+        db = self.database
+        out = []
+        for index in range(max(db.session_count - limit, 0), db.session_count):
+            seq = db.own_seq(index)
+            if seq is None:
+                continue
+            _, _, stamp = db.match_info(seq)
+            pose = db.pose(seq)
+            out.append((index, stamp, np.asarray(db.r_solid(seq), dtype=np.float64),
+                        np.asarray(db.heading(seq), dtype=np.float64),
+                        None if pose is None else np.asarray(pose, dtype=np.float64)))
+        return out
+
+    def own_cloud(self, index: int) -> KeyframeCloud | None:
+        """The stored cloud of this session's keyframe ``index`` (None: evicted or none)."""
+        seq = self.database.own_seq(index)
+        cloud = None if seq is None else self.clouds.get(seq)
+        # Peers keep the configuration's grid: a tight-space cloud goes out on it.
+        return None if cloud is None else coarsened(cloud, self._config.verify_voxel_size)
+
+    # --------------------------------------------------------------------------- persistence
+
+    def reset(self) -> None:
+        """Forget every stored scan and cloud (the configuration stays)."""
+        self.database = DescriptorDatabase(self._config)
+        self.clouds.clear()
+        if self.verifier is not None:
+            self.verifier.clear_cache()
+        self._kf_stamp = self._kf_pose = None
+        self._last_loop_query = None
+        self._path.clear()
+        self._own_seqs.clear()
+        self._views.clear()
+        self._structures.clear()
+
+    def save(self, path: str | Path,
+             map_poses: Mapping[tuple[int, int], Any] | None = None) -> Path:
+        """Save the database (all sessions) and its keyframe clouds atomically, with the
+        back end's map-frame poses by ``(session, index)`` when given; see
+        :mod:`solid_ros.core.database.persistence`."""
+        from solid_ros.core.database.persistence import save_database
+
+        return save_database(self.database, path, self.clouds, map_poses)
+
+    @classmethod
+    def load(cls, path: str | Path, config: SolidConfig | None = None) -> LoopDetector:
+        """Start a session that also queries (and verifies against) the scans saved in
+        ``path``.
+
+        Raises:
+            DatabaseError: unreadable file, different descriptor settings, or the file
+                already holds ``config.session_id``.
+        """
+        from solid_ros.core.database.persistence import load_database
+
+        cfg = config if config is not None else SolidConfig()
+        clouds = CloudStore(cfg.cloud_capacity, int(cfg.cloud_memory_mb * 1e6))
+        return cls(cfg, database=load_database(path, cfg, clouds), clouds=clouds)
+
+
+def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
+    """The one-line reason a cloud of ``shape`` holds no usable point."""
+    n = shape[0] if len(shape) == 2 and shape[1] > 0 else 0
+    if n == 0:
+        return 'no usable point: the cloud is empty'
+    return (f'no usable point: 0 of {n} points are finite and inside the range gate '
+            f'({cfg.min_range:g} to {cfg.max_range:g} m), the FOV ({cfg.fov_width_deg:g} deg) '
+            f'and max_distance ({cfg.max_distance:g} m)')
+
+
+def _stray_floor(coarse: CoarseResult) -> float:
+    """How far beyond the graph's sigmas a loop may move the query from the graph's guess:
+    ``STRAY_FLOOR_M``, or two of the pair's fine voxels where that is less (two tight-space
+    keyframes, or a grid set finer by hand: in the simulator's rooms right loops lay within
+    0.3 m of the guess, slides along shelves 0.7-1.7 m)."""
+    if coarse.query is None:
+        return STRAY_FLOOR_M
+    return min(STRAY_FLOOR_M, 2.0 * coarse.query.settings.voxel)
+
+
+def _same_place(a: Match, b: Match, hood: int) -> bool:
+    return a.session == b.session and abs(a.index - b.index) <= hood
+
+
+def _nan_to(value: float, default: float) -> float:
+    return default if math.isnan(value) else value
