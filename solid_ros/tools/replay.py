@@ -18,13 +18,15 @@ and, with ``backend: true``, the pose graph, whose corrected keyframe poses are 
 (ATE, RPE) beside the odometry's. The odometry is the bag's Odometry topic or KISS-ICP over the
 clouds (``--odometry kiss-icp``).
 
-Usage: ``solid_replay BAG [--params FILE.yaml] [--topic /points] [--odometry bag|kiss-icp]
-[--odom-topic T | --poses FILE [--times FILE]] [--out DIR [--map]] [--load-db F] [--save-db F]``.
+Usage: ``solid_replay BAG [--params FILE.yaml] [--set KEY=VALUE ...] [--topic /points]
+[--odometry bag|kiss-icp] [--odom-topic T | --poses FILE [--times FILE]] [--out DIR [--map]]
+[--load-db F] [--save-db F]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from collections.abc import Sequence
@@ -58,8 +60,9 @@ from solid_ros.tools.scoring import score
 from solid_ros.tools.summary import summary_lines
 from solid_ros.tools.trajectory import Trajectory, keyframe_trajectory, trajectory_errors
 
-__all__ = ['CSV_COLUMNS', 'ReplayOptions', 'ReplayResult', 'build_parser', 'load_config',
-           'main', 'replay', 'summary_lines']
+__all__ = ['CSV_COLUMNS', 'ReplayOptions', 'ReplayResult', 'build_parser',
+           'expand_set_arguments', 'load_config', 'main', 'parse_arguments', 'replay',
+           'summary_lines']
 
 
 def load_config(params: str | Path | None, node_name: str = 'solid_node',
@@ -185,8 +188,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--node-name', default='solid_node', metavar='NAME',
                    help='node block read from --params (default: %(default)s)')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                   help='override one parameter after --params (repeatable), e.g. '
-                        '--set distance_threshold=0.08')
+                   help='override parameters after --params: one or more KEY=VALUE after one '
+                        '--set, or --set repeated, e.g. --set fov_up_deg=52.0 '
+                        'fov_down_deg=-7.0. After --set every argument NAME=VALUE (NAME of '
+                        "letters, digits, '_' and '.') is an override, up to the first that is "
+                        'not: a bag whose name looks like that goes before --set or is written '
+                        './NAME=VALUE')
     p.add_argument('--topic', help='PointCloud2 topic (default: the only one in the bag; '
                                    'the choices are listed when there are several)')
     p.add_argument('--odom-topic', metavar='T',
@@ -242,6 +249,47 @@ def _output_options(p: argparse.ArgumentParser) -> None:
                    help='no progress and no summary; errors only')
 
 
+# An override that follows another after one --set: a parameter name, '=', its value.
+_SETTING = re.compile(r'[A-Za-z_][A-Za-z0-9_.]*=')
+
+
+def expand_set_arguments(argv: Sequence[str]) -> list[str]:
+    """``--set a=1 b=2`` as ``--set a=1 --set b=2``, for argparse.
+
+    The argument right after ``--set`` is its value, whatever it is (a bad one is refused
+    with its own message); after it, every ``NAME=VALUE`` argument is one more override, up
+    to the first that is not one (a bag, an option) or ``--``. Bags may contain '=' too,
+    rarely: one with a '/' (``./run=3``) is never taken for an override.
+    """
+    args = list(argv)
+    out: list[str] = []
+    setting = False
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        if arg == '--':
+            out += args[i:]
+            break
+        if setting and _SETTING.match(arg):
+            out += ['--set', arg]
+        elif arg == '--set':
+            out += args[i:i + 2]
+            i += 1
+            setting = True
+        else:
+            setting = arg.startswith('--set=')
+            out.append(arg)
+        i += 1
+    return out
+
+
+def parse_arguments(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line parsed: several overrides after one ``--set``, and bags before,
+    between or after the options; exits 2 with one line for a bad one."""
+    return build_parser().parse_intermixed_args(
+        expand_set_arguments(sys.argv[1:] if argv is None else argv))
+
+
 def _overrides(items: list[str]) -> dict[str, Any]:
     import yaml
 
@@ -283,7 +331,7 @@ def _run_fleet(bags: list[str], config: SolidConfig, options: ReplayOptions,
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``solid_replay``; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parse_arguments(argv)
     if args.times and not args.poses:
         parser.error('--times needs --poses')
     if args.map and not args.out:
