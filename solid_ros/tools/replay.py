@@ -50,6 +50,7 @@ from solid_ros.tools.options import (
     check_fraction,
     check_metres,
     cli_number,
+    fleet_note,
 )
 from solid_ros.tools.outputs import CSV_COLUMNS, write_outputs
 from solid_ros.tools.pipeline import BagInputs, OdometryWrap, ReplayPipeline
@@ -170,8 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
                     'threshold, ROC AUC, yaw error, ATE / RPE of the odometry and of the '
                     'corrected trajectory; write candidates.csv, report.json, '
                     'trajectory.tum/.kitti and plots with --out.',
-        epilog='With several bags only --params, --node-name, --set, --topic, --odom-topic, '
-               '--radius, --max-pose-error-m/-deg, --out, --progress and -q apply. '
+        epilog='With several bags (a fleet) --poses, --times, --load-db, --save-db, '
+               '--no-plots and --map mean nothing and are ignored, one line each saying why; '
+               'the other options apply to every robot. '
                'Reference poses come from --poses (KITTI 3x4 rows, paired with scans by order '
                'or by --times stamps; or TUM "stamp tx ty tz qx qy qz qw") or else from the '
                "bag's Odometry topic. A query has a true loop when an earlier scan outside the "
@@ -317,6 +319,19 @@ def _options(args: argparse.Namespace) -> ReplayOptions:
         params_file=args.params, progress='quiet' if args.quiet else args.progress)
 
 
+def _fleet_options(args: argparse.Namespace) -> ReplayOptions:
+    """The options of a fleet replay; one line on stderr, even with -q, for each option
+    given that means nothing to a fleet (ignored, not refused)."""
+    notes: list[str] = []
+    if args.times and not args.poses:  # alone, a bad option everywhere else
+        notes.append(fleet_note('--times'))
+        args.times = None
+    options, ignored = _options(args).for_fleet()
+    for line in notes + ignored:
+        print(f'{PROG}: {line}', file=sys.stderr)
+    return options
+
+
 def _run_fleet(bags: list[str], config: SolidConfig, options: ReplayOptions,
                quiet: bool) -> int:
     fleet = replay_fleet(bags, config, options)
@@ -332,16 +347,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``solid_replay``; returns the exit status."""
     parser = build_parser()
     args = parse_arguments(argv)
-    if args.times and not args.poses:
+    fleet = len(args.bag) > 1
+    if args.times and not args.poses and not fleet:
         parser.error('--times needs --poses')
-    if args.map and not args.out:
+    if args.map and not args.out and not fleet:
         parser.error('--map needs --out')
     if args.no_odom and args.odometry is not None:
         parser.error('--no-odom and --odometry exclude each other')
-    options = _options(args)
-    single = [flag for _, flag in options.single_bag()]
-    if len(args.bag) > 1 and single:
-        parser.error(f'{", ".join(single)} take one bag; {len(args.bag)} were given')
+    options = _fleet_options(args) if fleet else _options(args)
     tune_allocator()
     try:
         cfg, ncfg = load_config(args.params, args.node_name, _overrides(args.set))
