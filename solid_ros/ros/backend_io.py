@@ -3,7 +3,8 @@
 Outputs (with ``backend`` on and odometry to build the graph from):
 
 - ``/tf``: ``map_frame -> odom_frame`` at ``tf_rate_hz``, the newest correction; identity
-  until loops move it.
+  until loops move it. Never ``map -> map``: an odometry whose frame is ``map_frame`` gets no
+  transform and one WARN (:mod:`solid_ros.ros.frames`).
 - ``~/odometry`` (nav_msgs/Odometry): every incoming odometry message in the map frame, with
   the covariance of the graph's newest pose.
 - ``~/path`` (nav_msgs/Path, latched): the corrected keyframe poses, at most every
@@ -54,6 +55,7 @@ from solid_ros.formats.poses import (
     write_tum_poses,
 )
 from solid_ros.ros.bulk_participant import BulkParticipant
+from solid_ros.ros.frames import SelfTransformGuard, map_odom_advice
 from solid_ros.ros.graph_msgs import (
     cloud_msg,
     corrected_odometry,
@@ -94,6 +96,7 @@ class BackendIO:
         self._odom_frame = odom_frame
         self._log = node.get_logger()
         self._tf_pub = self._tf_publisher()
+        self._frames = SelfTransformGuard(self._log.warning, map_odom_advice)
         self._odom_pub = node.create_publisher(Odometry, '~/odometry', 10)
         self._bulk = BulkParticipant(node)
         self._path_pub = self._bulk.create_publisher(PathMsg, '~/path', _LATCHED)
@@ -148,6 +151,8 @@ class BackendIO:
         child = self._odom_frame()
         if not child or self._tf_pub is None:
             return  # no odometry frame known yet
+        if not self._frames.allows(self._cfg.map_frame, child):
+            return
         self._tf_pub.publish(transform_msg(self._output.snapshot.correction, self._now_ns(),
                                            self._cfg.map_frame, child))
 

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from solid_ros.core.config import NodeConfig, SolidConfig, load_parameter_file
 from solid_ros.core.errors import ConfigError
+from solid_ros.ros.frames import FRAME_KEYS, frame_conflict
 
 __all__ = ['NODE_NAME', 'NodeArguments', 'check_parameter_files', 'scan_arguments', 'usage']
 
@@ -98,13 +100,24 @@ def check_parameter_files(args: NodeArguments) -> None:
 
     Every file must be UTF-8 YAML in the ROS 2 layout with a block for this node (an empty
     file, or one whose blocks are all for other nodes, is refused as ``solid_replay`` refuses
-    it), and every value must be a setting of the node, of the right type and in range.
+    it), and every value must be a setting of the node, of the right type and in range. The
+    frames the files set, later files over earlier ones as rcl reads them, must not make a
+    transform from a frame to itself (:func:`~solid_ros.ros.frames.frame_conflict`).
 
     Raises:
-        ConfigError: one line naming the file and the problem.
+        ConfigError: one line naming the file and the problem (for the frames, the last file
+            that set one of them).
     """
+    frames: dict[str, Any] = {}
+    last = ''
     for path in args.params_files:
-        load_parameter_file(path, args.fully_qualified_name)
+        values = load_parameter_file(path, args.fully_qualified_name)
+        if any(key in values for key in FRAME_KEYS):
+            frames.update({key: values[key] for key in FRAME_KEYS if key in values})
+            last = path
+    problem = frame_conflict(NodeConfig(**frames)) if frames else None
+    if problem is not None:
+        raise ConfigError(f'{last}: {problem}')
 
 
 def usage() -> str:

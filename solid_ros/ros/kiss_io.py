@@ -4,7 +4,9 @@ The describe thread registers each cloud (:class:`~solid_ros.core.odometry.kiss.
 before describing it, never a subscription callback. Each pose goes out as nav_msgs/Odometry
 on ``~/kiss/odometry`` and as the ``odom_frame -> sensor`` transform on ``/tf`` (frames from
 ``odom_frame``, default ``odom``, and ``sensor_frame``, default the cloud's header frame), so
-the back end's map -> odom correction and RViz work with the node alone. A reset of the
+the back end's map -> odom correction and RViz work with the node alone; never one from a
+frame to itself (clouds whose frame is ``odom_frame``: no transform, one WARN, see
+:mod:`solid_ros.ros.frames`). A reset of the
 source (a cloud it cannot register) is logged with its reason; the back end starts a new
 graph segment on it.
 """
@@ -22,11 +24,10 @@ from solid_ros.core.config import NodeConfig
 from solid_ros.core.odometry.kiss import KissOdometry
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.stamps import split_stamp
+from solid_ros.ros.frames import DEFAULT_ODOM_FRAME, SelfTransformGuard, odom_sensor_advice
 from solid_ros.ros.graph_msgs import pose_msg, transform_msg
 
-__all__ = ['KissIO']
-
-DEFAULT_ODOM_FRAME = 'odom'
+__all__ = ['DEFAULT_ODOM_FRAME', 'KissIO']
 
 
 class KissIO:
@@ -45,6 +46,7 @@ class KissIO:
         self._log = node.get_logger()
         self.frame = cfg.odom_frame or DEFAULT_ODOM_FRAME
         self._sensor_frame = cfg.sensor_frame
+        self._frames = SelfTransformGuard(self._log.warning, odom_sensor_advice)
         self._pub = node.create_publisher(Odometry, '~/kiss/odometry', 10)
         self._tf_pub: Any = None
         try:
@@ -74,7 +76,7 @@ class KissIO:
         msg.header.frame_id, msg.child_frame_id = self.frame, child
         msg.pose.pose = pose_msg(sample.pose)
         self._pub.publish(msg)
-        if self._tf_pub is not None:
+        if self._tf_pub is not None and self._frames.allows(self.frame, child):
             self._tf_pub.publish(transform_msg(sample.pose, stamp_ns, self.frame, child))
         return sample
 

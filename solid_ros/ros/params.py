@@ -45,6 +45,7 @@ from solid_ros.core.config import (
 )
 from solid_ros.core.errors import ConfigError
 from solid_ros.core.stamps import INT64
+from solid_ros.ros.frames import frame_conflict
 
 __all__ = ['WEAKENS', 'apply_changes', 'changed', 'declare_all', 'make_descriptor',
            'unknown_overrides', 'weakening']
@@ -106,7 +107,8 @@ def declare_all(node: Node) -> tuple[SolidConfig, NodeConfig]:
 
     Raises:
         ConfigError: an override is unknown, of the wrong type, out of range, or fails a
-            cross-parameter rule; the message names the parameter and the allowed values.
+            cross-parameter rule (among them frames that would make a transform from a frame
+            to itself); the message names the parameter and the allowed values.
     """
     # rclpy silently ignores overrides that are never declared; a typo must not be ignored.
     overrides: Mapping[str, Any] = getattr(node, '_parameter_overrides', {}) or {}
@@ -129,6 +131,9 @@ def declare_all(node: Node) -> tuple[SolidConfig, NodeConfig]:
         values[spec.name] = param.value
     solid = SolidConfig.from_dict(values, strict=False)
     node_cfg = NodeConfig.from_dict(values, strict=False)
+    problem = frame_conflict(node_cfg)
+    if problem is not None:
+        raise ConfigError(problem)
     return solid, node_cfg
 
 

@@ -5,9 +5,10 @@ shares one descriptor fingerprint). The bags are merged by stamp; every keyframe
 stores is handed to the others as a peer keyframe (:meth:`LoopDetector.add_peer_keyframe`,
 what ``/solid/descriptors`` carries), and a candidate against another robot gets that robot's
 stored cloud at that moment (what ``/solid/cloud_requests`` fetches on a live system; an
-evicted one is ``peer_evicted``). Each bag's Odometry topic is fed to its robot's detector and
-gives the reference poses, which must share one world frame (true of the simulator's bags and
-of one recording split into parts).
+evicted one is ``peer_evicted``). Each bag's Odometry topic gives the reference poses, which
+must share one world frame (true of the simulator's bags and of one recording split into
+parts), and is fed to its robot's detector as in the one-bag replay: unless ``use_odom`` is
+off, or ``odometry`` is ``'kiss-icp'`` (each robot's KISS-ICP over its own clouds instead).
 
 Each robot's clouds go through the same chain as in the one-bag replay
 (:mod:`solid_ros.tools.pipeline`: odometry pose by stamp, then the detector), with its
@@ -30,7 +31,7 @@ from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.errors import BagError, ConfigError, PoseError, SolidError
 from solid_ros.core.flow.detector import LoopDetector
-from solid_ros.core.odometry.track import StampedOdometry
+from solid_ros.core.odometry.track import OdometrySource, StampedOdometry
 from solid_ros.core.reasons import Reason
 from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.formats.bags import Bag, CloudScan, select_cloud_topic, select_odom_topic
@@ -54,14 +55,15 @@ __all__ = ['FLEET_CSV_COLUMNS', 'FleetResult', 'fleet_summary_lines', 'replay_fl
 
 @dataclass
 class _Robot:
-    """One robot of a fleet replay: its bag, odometry and detector."""
+    """One robot of a fleet replay: its bag, its reference track, the odometry fed to its
+    detector (None: none) and the detector."""
 
     index: int
     path: str | Path
     bag: Bag
     topic: str
     track: PoseTrack
-    odometry: StampedOdometry
+    odometry: OdometrySource | None
     detector: LoopDetector
     skipped: int = 0
 
@@ -79,9 +81,12 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None,
         bags: two or more bags (MCAP, sqlite3 or ROS 1), robot ``i`` = ``bags[i]``.
         config: the fleet's detector settings (``session_id`` is set per robot).
         options: what a fleet takes of the replay options: ``node_config`` (the odometry
-            pairing tolerance), ``topic`` and ``odom_topic`` (in every bag; default: each
-            bag's only one), ``radius``, ``max_pose_error_m``, ``max_pose_error_deg``,
-            ``progress`` (default 'quiet') and ``stream``.
+            pairing tolerance, ``use_odom``, ``odometry_source``), ``topic`` and
+            ``odom_topic`` (in every bag; default: each bag's only one), ``use_odom``,
+            ``odometry``, ``radius``, ``max_heading_deg``, ``max_pose_error_m``,
+            ``max_pose_error_deg``, ``progress`` (default 'quiet') and ``stream``; the others
+            belong to one bag and are refused (the command line drops them with a note,
+            :meth:`ReplayOptions.for_fleet`).
         **changes: :class:`ReplayOptions` fields replacing those of ``options``.
 
     Raises:
@@ -94,8 +99,10 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None,
             else ReplayOptions.of(**{'progress': 'quiet', **changes}))
     single = [name for name, _ in opts.single_bag()]
     if single:
-        raise ConfigError(f'{", ".join(single)} take one bag; a fleet replay has {len(bags)}')
-    cfg = config if config is not None else SolidConfig()
+        raise ConfigError(f'{", ".join(single)}: for one bag only; a fleet replay has '
+                          f'{len(bags)} bags')
+    cfg = (config if config is not None else SolidConfig()).for_odometry(
+        opts.feed_odom and opts.odometry_mode == 'kiss-icp')
     result = FleetResult([Path(b) for b in bags])
     robots: list[_Robot] = []
     try:
@@ -128,15 +135,30 @@ def _open(path: str | Path, index: int, cfg: SolidConfig, opts: ReplayOptions) -
                            '(a fleet replay scores every robot against its odometry)')
         track = bag.odometry(odom)
         topic = select_cloud_topic(bag, opts.topic)
-        if track.stamps_ns is None:  # odometry tracks always carry stamps
-            raise BagError(f'{track.source}: odometry without stamps')
-        source = StampedOdometry.from_track(track.stamps_ns, track.poses, opts.tolerance_ns,
-                                            track.source)
+        source = _source(track, opts)
     except BaseException:
         bag.close()
         raise
     detector = LoopDetector(cfg.replace(session_id=index))
     return _Robot(index, path, bag, topic, track, source, detector)
+
+
+def _source(track: PoseTrack, opts: ReplayOptions) -> OdometrySource | None:
+    """The odometry fed to a robot's detector, as the one-bag replay chooses it.
+
+    Raises:
+        SolidError: the track has no stamps, or KISS-ICP is not installed.
+    """
+    if track.stamps_ns is None:  # odometry tracks always carry stamps
+        raise BagError(f'{track.source}: odometry without stamps')
+    if not opts.feed_odom:
+        return None
+    if opts.odometry_mode == 'kiss-icp':
+        from solid_ros.core.odometry.kiss import KissOdometry
+
+        return KissOdometry(opts.node_config)
+    return StampedOdometry.from_track(track.stamps_ns, track.poses, opts.tolerance_ns,
+                                      track.source)
 
 
 def _connect(robots: list[_Robot]) -> None:
@@ -183,7 +205,8 @@ def _step(robots: list[_Robot], robot: _Robot, stamp: int,
     if scan.points is None:
         robot.skipped += 1
         return None
-    paired = robot.odometry.pose_for(stamp, scan.points)
+    paired = (robot.odometry.pose_for(stamp, scan.points) if robot.odometry is not None
+              else None)
     try:
         proposal = robot.detector.propose(scan.points, stamp,
                                           paired.pose if paired is not None else None)

@@ -2,7 +2,8 @@
 
 A published loop of robot ``i`` against robot ``j`` is correct when its pose is within the
 limits of ``inv(ref_j[m]) @ ref_i[q]``. A query has a true inter-robot loop when a keyframe
-another robot stored before it lies within the radius; inter-robot recall is the fraction of
+another robot stored before it lies within the radius (and, with ``max_heading_deg``, its
+heading within that many degrees); inter-robot recall is the fraction of
 those queries with at least one correct inter-robot loop. Loops within one robot are scored
 the same way and reported beside them.
 """
@@ -10,6 +11,7 @@ the same way and reported beside them.
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,25 +102,36 @@ def loop_error(r: FleetResult, robot: int, c: LoopCandidate) -> tuple[float, flo
     return float(te), float(re_)
 
 
-def _positives(r: FleetResult, robot: int, radius: float, inter: bool,
-               exclude: int) -> set[int]:
-    """Queries of ``robot`` with a keyframe stored before them within ``radius``: of another
-    robot (``inter``), or its own outside the newest ``exclude`` keyframes."""
+def _headings(poses: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    out: npt.NDArray[np.float64] = np.arctan2(poses[:, 1, 0], poses[:, 0, 0])
+    return out
+
+
+def _positives(r: FleetResult, robot: int, radius: float, inter: bool, exclude: int,
+               max_heading_deg: float | None = None) -> set[int]:
+    """Queries of ``robot`` with a keyframe stored before them within ``radius`` (and
+    ``max_heading_deg`` of heading, when given): of another robot (``inter``), or its own
+    outside the newest ``exclude`` keyframes."""
     own = r.reference[robot][:, :3, 3]
+    own_heads = _headings(r.reference[robot])
     out: set[int] = set()
     for j, other in enumerate(r.reference):
         if (j == robot) == inter or not len(other):
             continue
         stamps = np.asarray(r.stamps[j], dtype=np.int64)
-        pos = other[:, :3, 3]
+        pos, heads = other[:, :3, 3], _headings(other)
         for q, (p, stamp) in enumerate(zip(own, r.stamps[robot])):
             if not np.all(np.isfinite(p)):
                 continue
             mask = stamps < stamp
             if not inter:
                 mask[max(q - exclude, 0):] = False
-            d = np.linalg.norm(pos[mask] - p, axis=1)
-            if d.size and np.nanmin(d) <= radius:
+            with np.errstate(invalid='ignore'):  # NaN poses are never near
+                near = np.linalg.norm(pos[mask] - p, axis=1) <= radius
+                if max_heading_deg is not None:
+                    turn = (heads[mask] - own_heads[q] + math.pi) % (2 * math.pi) - math.pi
+                    near &= np.abs(turn) <= math.radians(max_heading_deg)
+            if near.any():
                 out.add(q)
     return out
 
@@ -146,11 +159,12 @@ def fleet_report(r: FleetResult, runs: Sequence[RobotRun], cfg: SolidConfig,
                  opts: ReplayOptions) -> dict[str, Any]:
     """The fleet's ``report.json``: per robot and in total, inter-robot and own loops."""
     radius, max_m, max_deg = opts.radius, opts.max_pose_error_m, opts.max_pose_error_deg
+    heading = opts.max_heading_deg
     per_robot: list[dict[str, Any]] = []
     for i, run in enumerate(runs):
-        inter = _score(r, i, True, max_m, max_deg, _positives(r, i, radius, True, 0))
+        inter = _score(r, i, True, max_m, max_deg, _positives(r, i, radius, True, 0, heading))
         own = _score(r, i, False, max_m, max_deg,
-                     _positives(r, i, radius, False, cfg.exclude_recent_frames))
+                     _positives(r, i, radius, False, cfg.exclude_recent_frames, heading))
         per_robot.append({'robot': i, 'bag': str(r.bags[i]), 'integrity': run.integrity,
                           'keyframes': len(r.stamps[i]), 'skipped_clouds': run.skipped,
                           'published': len(r.published[i]), 'inter_robot': inter,
@@ -165,7 +179,8 @@ def fleet_report(r: FleetResult, runs: Sequence[RobotRun], cfg: SolidConfig,
                        if s['queries_with_true_loop'] else None)
         totals[key] = s
     return {'tool': 'solid_replay (fleet)', 'robots': per_robot, 'radius_m': radius,
-            'max_pose_error_m': max_m, 'max_pose_error_deg': max_deg,
+            'max_heading_deg': heading, 'max_pose_error_m': max_m, 'max_pose_error_deg': max_deg,
+            'odometry_fed': opts.odometry_mode if opts.feed_odom else 'none',
             'config': cfg.to_dict(), 'config_fingerprint': cfg.fingerprint(), **totals}
 
 
@@ -215,7 +230,14 @@ def fleet_summary_lines(result: FleetResult, prog: str = 'solid_replay') -> list
         lines.append(f'  {name:<14} {s["published"]} published: precision '
                      f'{_fmt(s["precision"])}, recall {_fmt(s["recall"])} '
                      f'({s["queries_found"]} of {s["queries_with_true_loop"]} queries with a '
-                     f'true loop within {rep["radius_m"]} m)')
+                     f'true loop within {rep["radius_m"]} m{_heading_text(rep)})')
     lines.append(f'  correct          pose within {rep["max_pose_error_m"]} m and '
                  f'{rep["max_pose_error_deg"]} deg of the reference relative pose')
+    lines.append(f'  odometry fed     {rep["odometry_fed"]} (the reference: each bag\'s '
+                 'Odometry topic)')
     return lines
+
+
+def _heading_text(rep: Mapping[str, Any]) -> str:
+    heading = rep.get('max_heading_deg')
+    return '' if heading is None else f' and {heading} deg of heading'

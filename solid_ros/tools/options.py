@@ -19,7 +19,7 @@ from solid_ros.core.config import NodeConfig
 from solid_ros.core.errors import ConfigError, PoseError
 
 __all__ = ['ODOMETRY_CHOICES', 'PROGRESS_MODES', 'ReplayOptions', 'check_degrees',
-           'check_fraction', 'check_metres', 'cli_number']
+           'check_fraction', 'check_metres', 'cli_number', 'fleet_note']
 
 PROGRESS_MODES = ('auto', 'bar', 'lines', 'quiet')
 # Where a replay's odometry comes from: the bag's Odometry topic, or KISS-ICP over the clouds.
@@ -63,11 +63,22 @@ _CHECKS: tuple[tuple[str, str, Callable[[float], str | None]], ...] = (
     ('target_precision', '--target-precision', check_fraction),
 )
 
-# Options of one bag only (a fleet replay refuses them), with their command-line flags.
-_SINGLE_BAG = (('poses', '--poses'), ('times', '--times'), ('load_db', '--load-db'),
-               ('save_db', '--save-db'), ('use_odom', '--no-odom'),
-               ('max_heading_deg', '--max-heading-deg'), ('plots', '--no-plots'),
-               ('odometry', '--odometry'), ('map', '--map'))
+# Options that mean nothing to a fleet replay, with their flags and why: the command line
+# ignores them with one line each (for_fleet), replay_fleet refuses them.
+_SINGLE_BAG = (
+    ('poses', '--poses', "a fleet is scored against each bag's odometry"),
+    ('times', '--times', 'it goes with --poses'),
+    ('load_db', '--load-db', 'each robot starts a database of its own'),
+    ('save_db', '--save-db', 'each robot has a database of its own; none is saved'),
+    ('plots', '--no-plots', 'a fleet replay writes no plots'),
+    ('map', '--map', 'a fleet replay has no pose graph to place the clouds with'),
+)
+
+
+def fleet_note(flag: str) -> str:
+    """The line for an option of one bag only given to a fleet replay: ignored, and why."""
+    why = {f: w for _, f, w in _SINGLE_BAG}[flag]
+    return f'ignored for a fleet replay: {flag} ({why})'
 
 
 @dataclass(frozen=True)
@@ -158,8 +169,17 @@ class ReplayOptions:
     def single_bag(self) -> list[tuple[str, str]]:
         """``(option, flag)`` of each option set here that only a one-bag replay takes."""
         default = ReplayOptions()
-        return [(name, flag) for name, flag in _SINGLE_BAG
+        return [(name, flag) for name, flag, _ in _SINGLE_BAG
                 if getattr(self, name) != getattr(default, name)]
+
+    def for_fleet(self) -> tuple[ReplayOptions, list[str]]:
+        """These options for a fleet replay: those of one bag only back at their defaults,
+        and one line for each of them that was set, saying it is ignored and why
+        (:func:`fleet_note`)."""
+        default = ReplayOptions()
+        set_here = dict(self.single_bag())
+        lines = [fleet_note(flag) for flag in set_here.values()]
+        return replace(self, **{name: getattr(default, name) for name in set_here}), lines
 
     @property
     def feed_odom(self) -> bool:

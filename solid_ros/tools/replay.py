@@ -18,13 +18,15 @@ and, with ``backend: true``, the pose graph, whose corrected keyframe poses are 
 (ATE, RPE) beside the odometry's. The odometry is the bag's Odometry topic or KISS-ICP over the
 clouds (``--odometry kiss-icp``).
 
-Usage: ``solid_replay BAG [--params FILE.yaml] [--topic /points] [--odometry bag|kiss-icp]
-[--odom-topic T | --poses FILE [--times FILE]] [--out DIR [--map]] [--load-db F] [--save-db F]``.
+Usage: ``solid_replay BAG [--params FILE.yaml] [--set KEY=VALUE ...] [--topic /points]
+[--odometry bag|kiss-icp] [--odom-topic T | --poses FILE [--times FILE]] [--out DIR [--map]]
+[--load-db F] [--save-db F]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from collections.abc import Sequence
@@ -48,6 +50,7 @@ from solid_ros.tools.options import (
     check_fraction,
     check_metres,
     cli_number,
+    fleet_note,
 )
 from solid_ros.tools.outputs import CSV_COLUMNS, write_outputs
 from solid_ros.tools.pipeline import BagInputs, OdometryWrap, ReplayPipeline
@@ -58,8 +61,9 @@ from solid_ros.tools.scoring import score
 from solid_ros.tools.summary import summary_lines
 from solid_ros.tools.trajectory import Trajectory, keyframe_trajectory, trajectory_errors
 
-__all__ = ['CSV_COLUMNS', 'ReplayOptions', 'ReplayResult', 'build_parser', 'load_config',
-           'main', 'replay', 'summary_lines']
+__all__ = ['CSV_COLUMNS', 'ReplayOptions', 'ReplayResult', 'build_parser',
+           'expand_set_arguments', 'load_config', 'main', 'parse_arguments', 'replay',
+           'summary_lines']
 
 
 def load_config(params: str | Path | None, node_name: str = 'solid_node',
@@ -167,8 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
                     'threshold, ROC AUC, yaw error, ATE / RPE of the odometry and of the '
                     'corrected trajectory; write candidates.csv, report.json, '
                     'trajectory.tum/.kitti and plots with --out.',
-        epilog='With several bags only --params, --node-name, --set, --topic, --odom-topic, '
-               '--radius, --max-pose-error-m/-deg, --out, --progress and -q apply. '
+        epilog='With several bags (a fleet) --poses, --times, --load-db, --save-db, '
+               '--no-plots and --map mean nothing and are ignored, one line each saying why; '
+               'the other options apply to every robot. '
                'Reference poses come from --poses (KITTI 3x4 rows, paired with scans by order '
                'or by --times stamps; or TUM "stamp tx ty tz qx qy qz qw") or else from the '
                "bag's Odometry topic. A query has a true loop when an earlier scan outside the "
@@ -185,8 +190,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--node-name', default='solid_node', metavar='NAME',
                    help='node block read from --params (default: %(default)s)')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
-                   help='override one parameter after --params (repeatable), e.g. '
-                        '--set distance_threshold=0.08')
+                   help='override parameters after --params: one or more KEY=VALUE after one '
+                        '--set, or --set repeated, e.g. --set fov_up_deg=52.0 '
+                        'fov_down_deg=-7.0. After --set every argument NAME=VALUE (NAME of '
+                        "letters, digits, '_' and '.') is an override, up to the first that is "
+                        'not: a bag whose name looks like that goes before --set or is written '
+                        './NAME=VALUE')
     p.add_argument('--topic', help='PointCloud2 topic (default: the only one in the bag; '
                                    'the choices are listed when there are several)')
     p.add_argument('--odom-topic', metavar='T',
@@ -242,6 +251,47 @@ def _output_options(p: argparse.ArgumentParser) -> None:
                    help='no progress and no summary; errors only')
 
 
+# An override that follows another after one --set: a parameter name, '=', its value.
+_SETTING = re.compile(r'[A-Za-z_][A-Za-z0-9_.]*=')
+
+
+def expand_set_arguments(argv: Sequence[str]) -> list[str]:
+    """``--set a=1 b=2`` as ``--set a=1 --set b=2``, for argparse.
+
+    The argument right after ``--set`` is its value, whatever it is (a bad one is refused
+    with its own message); after it, every ``NAME=VALUE`` argument is one more override, up
+    to the first that is not one (a bag, an option) or ``--``. Bags may contain '=' too,
+    rarely: one with a '/' (``./run=3``) is never taken for an override.
+    """
+    args = list(argv)
+    out: list[str] = []
+    setting = False
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        if arg == '--':
+            out += args[i:]
+            break
+        if setting and _SETTING.match(arg):
+            out += ['--set', arg]
+        elif arg == '--set':
+            out += args[i:i + 2]
+            i += 1
+            setting = True
+        else:
+            setting = arg.startswith('--set=')
+            out.append(arg)
+        i += 1
+    return out
+
+
+def parse_arguments(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line parsed: several overrides after one ``--set``, and bags before,
+    between or after the options; exits 2 with one line for a bad one."""
+    return build_parser().parse_intermixed_args(
+        expand_set_arguments(sys.argv[1:] if argv is None else argv))
+
+
 def _overrides(items: list[str]) -> dict[str, Any]:
     import yaml
 
@@ -269,6 +319,19 @@ def _options(args: argparse.Namespace) -> ReplayOptions:
         params_file=args.params, progress='quiet' if args.quiet else args.progress)
 
 
+def _fleet_options(args: argparse.Namespace) -> ReplayOptions:
+    """The options of a fleet replay; one line on stderr, even with -q, for each option
+    given that means nothing to a fleet (ignored, not refused)."""
+    notes: list[str] = []
+    if args.times and not args.poses:  # alone, a bad option everywhere else
+        notes.append(fleet_note('--times'))
+        args.times = None
+    options, ignored = _options(args).for_fleet()
+    for line in notes + ignored:
+        print(f'{PROG}: {line}', file=sys.stderr)
+    return options
+
+
 def _run_fleet(bags: list[str], config: SolidConfig, options: ReplayOptions,
                quiet: bool) -> int:
     fleet = replay_fleet(bags, config, options)
@@ -283,17 +346,15 @@ def _run_fleet(bags: list[str], config: SolidConfig, options: ReplayOptions,
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``solid_replay``; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.times and not args.poses:
+    args = parse_arguments(argv)
+    fleet = len(args.bag) > 1
+    if args.times and not args.poses and not fleet:
         parser.error('--times needs --poses')
-    if args.map and not args.out:
+    if args.map and not args.out and not fleet:
         parser.error('--map needs --out')
     if args.no_odom and args.odometry is not None:
         parser.error('--no-odom and --odometry exclude each other')
-    options = _options(args)
-    single = [flag for _, flag in options.single_bag()]
-    if len(args.bag) > 1 and single:
-        parser.error(f'{", ".join(single)} take one bag; {len(args.bag)} were given')
+    options = _fleet_options(args) if fleet else _options(args)
     tune_allocator()
     try:
         cfg, ncfg = load_config(args.params, args.node_name, _overrides(args.set))

@@ -10,7 +10,7 @@ import pytest
 from bad_inputs import BAD_FILES, write_bad_file
 
 from solid_ros.core.config import param_specs
-from solid_ros.ros.cli import scan_arguments, usage
+from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
 from solid_ros.tools import replay
 
 EXE = Path(sys.executable).parent / 'solid_node'
@@ -69,6 +69,35 @@ def test_every_file_is_checked_and_missing_value_refused(
     assert str(bad) in capsys.readouterr().err
     assert main(['solid_node', '--ros-args', '--params-file']) == 2
     assert '--params-file needs a value' in capsys.readouterr().err
+
+
+def test_frames_that_make_a_self_transform_exit_2_with_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    def write(name: str, body: str) -> Path:
+        path = tmp_path / name
+        path.write_text('solid_node:\n  ros__parameters:\n' + body)
+        return path
+
+    # odom_frame 'map' beside the default map_frame 'map': map -> map on /tf.
+    same = write('same.yaml', "    odom_frame: 'map'\n")
+    assert main(['solid_node', '--ros-args', '--params-file', str(same)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'solid_node: error: {same}: map_frame and odom_frame') and (
+        'map -> map' in err and 'map_frame: solid_map' in err and err.count('\n') == 1), err
+    # Two files: the second sets the frame the first named the map.
+    first = write('first.yaml', "    map_frame: 'world'\n")
+    second = write('second.yaml', "    odom_frame: 'world'\n")
+    assert main(['solid_node', '--ros-args', '--params-file', str(first), '--params-file',
+                 str(second)]) == 2
+    assert capsys.readouterr().err.startswith(f'solid_node: error: {second}: map_frame')
+    # KISS-ICP broadcasts odom_frame -> sensor_frame too.
+    kiss = write('kiss.yaml', "    odometry_source: 'kiss_icp'\n    sensor_frame: 'odom'\n")
+    assert main(['solid_node', '--ros-args', '--params-file', str(kiss)]) == 2
+    assert 'odom_frame and sensor_frame' in capsys.readouterr().err
+    # Distinct frames pass the check (checked alone: the node is not started here).
+    ok = write('ok.yaml', "    map_frame: 'solid_map'\n    odom_frame: 'map'\n")
+    check_parameter_files(scan_arguments(['solid_node', '--ros-args', '--params-file',
+                                          str(ok)]))
 
 
 def test_rcl_errors_are_one_line_exit_2(capsys: pytest.CaptureFixture[str]) -> None:

@@ -4,6 +4,7 @@ only where they may."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -183,3 +184,61 @@ def test_kiss_icp_odometry_gates_keyframes_and_closes_the_revisit(
     # With KISS-ICP (a scan-only odometry) 'auto' registers each keyframe to the previous one.
     assert h.node.solid_config.backend_step_registration == 'on'
     h.wait_for(lambda: int(h.status().get('backend_steps', 0)) > 0, 'registered steps')
+
+
+def _transforms(tf: list[Any], parent: str, child: str) -> list[Any]:
+    return [t for m in list(tf) for t in m.transforms
+            if (t.header.frame_id, t.child_frame_id) == (parent, child)]
+
+
+def _warnings(err: list[str], capfd: pytest.CaptureFixture[str], text: str) -> list[str]:
+    err.append(capfd.readouterr().err)
+    return [line for line in ''.join(err).splitlines() if text in line]
+
+
+def test_an_odometry_in_the_map_frame_gets_no_map_to_map_transform(
+        harness: Callable[..., Harness], capfd: pytest.CaptureFixture[str]) -> None:
+    # Several SLAM outputs and recorded bags name their odometry frame 'map', as the
+    # default map_frame is: map -> map would break every TF lookup of 'map'.
+    h = harness([Parameter('tf_rate_hz', value=50.0)], params_file=AVIA)
+    assert h.node.solid_config.backend
+    tf = _listen(h, TFMessage, '/tf', 100)
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
+    for k in range(1, 4):
+        h.pub_odom.publish(make_odometry(drive.odometry(k), k * SEC, frame='map'))
+    err: list[str] = []
+    said = 'map_frame and odom_frame'
+    h.wait_for(lambda: bool(_warnings(err, capfd, said)), 'the frame warning', 20.0)
+    time.sleep(1.0)  # 50 more broadcast periods: still one line
+    lines = _warnings(err, capfd, said)
+    assert len(lines) == 1 and '[WARN]' in lines[0], lines
+    assert "both 'map'" in lines[0] and 'map_frame: solid_map' in lines[0]
+    assert not _transforms(tf, 'map', 'map')
+    # /tf was heard all along: an odometry in its own frame gets map -> odom at once.
+    h.pub_odom.publish(make_odometry(drive.odometry(4), 4 * SEC, frame='odom'))
+    h.wait_for(lambda: bool(_transforms(tf, 'map', 'odom')), 'map -> odom', 20.0)
+    assert not _transforms(tf, 'map', 'map')
+    assert len(_warnings(err, capfd, said)) == 1
+
+
+def test_kiss_icp_clouds_in_the_odom_frame_get_no_odom_to_odom_transform(
+        harness: Callable[..., Harness], capfd: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip('kiss_icp', reason='kiss-icp is not installed')
+    # KISS-ICP's transform is odom_frame ('odom') -> the clouds' frame (sensor_frame empty).
+    h = harness([Parameter('odometry_source', value='kiss_icp')], params_file=None)
+    odometry = _listen(h, Odometry, '/solid_node/kiss/odometry', 100)
+    tf = _listen(h, TFMessage, '/tf', 100)
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
+    h.replay([('points', make_cloud(drive.scan(i).points, (i + 1) * SEC, frame='odom'))
+              for i in range(3)])
+    h.wait_for(lambda: len(odometry) == 3, 'an odometry message per cloud', 20.0)
+    err: list[str] = []
+    said = 'odom_frame and sensor_frame'
+    h.wait_for(lambda: bool(_warnings(err, capfd, said)), 'the frame warning', 20.0)
+    lines = _warnings(err, capfd, said)
+    assert len(lines) == 1 and '[WARN]' in lines[0] and "both 'odom'" in lines[0], lines
+    assert not _transforms(tf, 'odom', 'odom')
+    h.replay([('points', make_cloud(drive.scan(3).points, 4 * SEC, frame='lidar'))])
+    h.wait_for(lambda: bool(_transforms(tf, 'odom', 'lidar')), 'odom -> lidar', 20.0)
+    assert not _transforms(tf, 'odom', 'odom')
+    assert len(_warnings(err, capfd, said)) == 1

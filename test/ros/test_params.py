@@ -128,6 +128,16 @@ def test_bad_choice_and_cross_rule_are_rejected(context: Context) -> None:
         node.destroy_node()
 
 
+def test_frames_that_make_a_self_transform_are_rejected(context: Context) -> None:
+    # -p overrides and in-process nodes do not pass the command-line check of the files.
+    node = _node(context, overrides=[Parameter('odom_frame', value='map')])
+    try:
+        with pytest.raises(ConfigError, match=r"map_frame and odom_frame .* both 'map'"):
+            declare_all(node)
+    finally:
+        node.destroy_node()
+
+
 def test_unknown_parameter_in_file_is_rejected(context: Context, tmp_path: Path) -> None:
     path = tmp_path / 'typo.yaml'
     path.write_text('solid_node:\n  ros__parameters:\n    distance_treshold: 0.1\n')

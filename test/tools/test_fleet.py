@@ -16,6 +16,8 @@ from solid_ros.core.errors import ConfigError
 from solid_ros.formats.bags import write_cloud_bag
 from solid_ros.formats.poses import read_kitti_poses
 from solid_ros.tools.fleet import FLEET_CSV_COLUMNS, replay_fleet
+from solid_ros.tools.fleet_scoring import FleetResult, RobotRun, fleet_report
+from solid_ros.tools.options import ReplayOptions
 from solid_ros.tools.replay import main
 
 pytest.importorskip('small_gicp', reason='small-gicp is not installed')
@@ -103,19 +105,91 @@ def test_fleet_refusals(tmp_path: Path, robots: tuple[Path, Path],
                         capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(ConfigError, match='two or more bags'):
         replay_fleet(robots[:1], CFG)
-    # The API refuses what belongs to one bag as the command line does.
-    with pytest.raises(ConfigError, match='poses, load_db take one bag'):
+    # The API refuses what belongs to one bag (the command line ignores it, below).
+    with pytest.raises(ConfigError, match='poses, load_db: for one bag only; a fleet replay '
+                                          'has 2 bags'):
         replay_fleet(robots, CFG, poses='p.txt', load_db='db.npz')
-    # Options that belong to one bag are a bad command line with several.
-    with pytest.raises(SystemExit) as exc:
-        main([str(robots[0]), str(robots[1]), '--save-db', str(tmp_path / 'x.npz')])
-    assert exc.value.code == 2
-    assert '--save-db take one bag' in capsys.readouterr().err
+    # --times without --poses, --map without --out: for one bag a bad command line (exit 2),
+    # for a fleet ignored like the rest; here the missing bag is then the error.
+    assert main([str(robots[0]), str(tmp_path / 'gone'), '--times', 't.txt', '--map']) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert [line.split(' (')[0] for line in err[:2]] == [
+        'solid_replay: ignored for a fleet replay: --times',
+        'solid_replay: ignored for a fleet replay: --map'], err
+    assert len(err) == 3 and 'gone' in err[2], err
+    for alone in (['--times', 't.txt'], ['--map']):
+        with pytest.raises(SystemExit) as exc:
+            main([str(robots[0]), *alone])
+        assert exc.value.code == 2
+    capsys.readouterr()
     # A bag without odometry cannot be scored: one line, exit 1.
     bare = write_cloud_bag(tmp_path / 'bare', [(np.zeros((10, 3)) + 5.0, T0, None)], 'mcap')
     assert main([str(robots[0]), str(bare), '-q']) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and 'no nav_msgs/Odometry topic' in err[0], err
+
+
+def test_cli_takes_every_option_and_ignores_those_of_one_bag_with_a_line_each(
+        tmp_path: Path, robots: tuple[Path, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    poses = tmp_path / 'poses.txt'
+    poses.write_text('1 0 0 0 0 1 0 0 0 0 1 0\n')
+    db, out = tmp_path / 'fleet.npz', tmp_path / 'out'
+    # Bags before, between and after the options; --no-odom and --max-heading-deg apply.
+    code = main([str(robots[0]), '--no-plots', '--poses', str(poses), '--times', 'times.txt',
+                 '--save-db', str(db), '--load-db', str(tmp_path / 'none.npz'), '--map',
+                 str(robots[1]), '--no-odom', '--max-heading-deg', '30', '--set',
+                 'exclude_recent_frames=5', 'num_candidates=3', '--out', str(out), '-q'])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert captured.out == ''  # -q: no summary; the notes below are about the command line
+    assert captured.err.splitlines() == [
+        f'solid_replay: ignored for a fleet replay: {flag} ({why})' for flag, why in (
+            ('--poses', "a fleet is scored against each bag's odometry"),
+            ('--times', 'it goes with --poses'),
+            ('--load-db', 'each robot starts a database of its own'),
+            ('--save-db', 'each robot has a database of its own; none is saved'),
+            ('--no-plots', 'a fleet replay writes no plots'),
+            ('--map', 'a fleet replay has no pose graph to place the clouds with'))]
+    assert not db.exists()
+    report = json.loads((out / 'report.json').read_text())
+    assert report['odometry_fed'] == 'none' and report['max_heading_deg'] == 30.0
+    assert report['config']['exclude_recent_frames'] == 5
+    assert report['config']['num_candidates'] == 3
+    # Without odometry every scan is a keyframe, and the robots still find each other.
+    assert [rb['keyframes'] for rb in report['robots']] == [10, 10]
+    assert report['inter_robot']['false'] == 0 and report['inter_robot']['correct'] >= 10
+    # One bag: the same options are its own (the missing poses file is an error there).
+    assert main([str(robots[0]), '--poses', str(tmp_path / 'nope.txt'), '-q']) == 1
+    assert 'cannot read poses' in capsys.readouterr().err
+
+
+def test_kiss_icp_odometry_is_fed_to_every_robot(robots: tuple[Path, Path]) -> None:
+    pytest.importorskip('kiss_icp', reason='kiss-icp is not installed')
+    result = replay_fleet(robots, CFG, odometry='kiss-icp')
+    assert result.report['odometry_fed'] == 'kiss-icp'
+    assert result.report['config']['backend_step_registration'] == 'on'  # 'auto' resolved
+    # KISS-ICP barely moves over the simulator's ringed ground (README, Odometry sources),
+    # so its keyframes by distance are fewer than the bag odometry's ten.
+    assert all(1 <= rb['keyframes'] < 10 for rb in result.report['robots'])
+
+
+def test_heading_gate_applies_to_the_fleet_ground_truth() -> None:
+    def poses(yaw_deg: float) -> np.ndarray:
+        out = np.tile(np.eye(4), (2, 1, 1))
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        out[:, :2, :2] = [[c, -s], [s, c]]
+        out[1, 0, 3] = 1.0
+        return out
+
+    result = FleetResult([Path('a'), Path('b')], stamps=[[1, 2], [3, 4]],
+                         reference=[poses(0.0), poses(40.0)], published=[[], []],
+                         errors=[[], []])
+    runs = [RobotRun('ok', 0, {})] * 2
+    for heading, expected in ((None, 2), (45.0, 2), (30.0, 0)):
+        opts = ReplayOptions(max_heading_deg=heading)
+        report = fleet_report(result, runs, CFG, opts)
+        assert report['robots'][1]['inter_robot']['queries_with_true_loop'] == expected
+        assert report['max_heading_deg'] == heading
 
 
 def test_hku1_split_into_two_robots(shared_data: Path, tmp_path: Path) -> None:

@@ -75,12 +75,25 @@ def test_odometry_source_is_the_option_else_the_node_setting() -> None:
     assert ReplayOptions(odometry='kiss-icp').odometry_mode == 'kiss-icp'
     with pytest.raises(ConfigError, match='--odometry must be one of bag, kiss-icp'):
         ReplayOptions(odometry='kiss_icp')
-    assert ReplayOptions(odometry='kiss-icp', map=True).single_bag() == [
-        ('odometry', '--odometry'), ('map', '--map')]
+    # A fleet feeds each robot the odometry asked for: --odometry is not of one bag only.
+    assert ReplayOptions(odometry='kiss-icp', map=True).single_bag() == [('map', '--map')]
 
 
 def test_single_bag_options_are_named() -> None:
-    assert ReplayOptions(radius=2.0, topic='/p', out_dir='o').single_bag() == []
+    assert ReplayOptions(radius=2.0, topic='/p', out_dir='o', use_odom=False,
+                         max_heading_deg=30.0).single_bag() == []
     opts = ReplayOptions(poses='p', save_db='d', use_odom=False, plots=False)
     assert opts.single_bag() == [('poses', '--poses'), ('save_db', '--save-db'),
-                                 ('use_odom', '--no-odom'), ('plots', '--no-plots')]
+                                 ('plots', '--no-plots')]
+
+
+def test_for_fleet_drops_the_options_of_one_bag_with_a_line_each() -> None:
+    opts = ReplayOptions(poses='p', times='t', load_db='l', save_db='d', plots=False,
+                         map=True, radius=2.0, use_odom=False, max_heading_deg=30.0)
+    fleet, lines = opts.for_fleet()
+    assert fleet == ReplayOptions(radius=2.0, use_odom=False, max_heading_deg=30.0)
+    flags = ['--poses', '--times', '--load-db', '--save-db', '--no-plots', '--map']
+    assert [line.split(' (')[0] for line in lines] == [
+        f'ignored for a fleet replay: {flag}' for flag in flags]
+    assert all(line.endswith(')') and len(line) < 100 for line in lines), lines
+    assert ReplayOptions(radius=2.0).for_fleet() == (ReplayOptions(radius=2.0), [])

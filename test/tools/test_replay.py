@@ -20,7 +20,15 @@ from solid_ros.core.verification.verifier import REASONS
 from solid_ros.formats.bags import POINTCLOUD2, BagWriter, write_cloud_bag
 from solid_ros.formats.pointcloud2 import CloudLayout, encode_points
 from solid_ros.tools.plots import PLOT_FILES
-from solid_ros.tools.replay import CSV_COLUMNS, build_parser, main, replay, summary_lines
+from solid_ros.tools.replay import (
+    CSV_COLUMNS,
+    build_parser,
+    expand_set_arguments,
+    main,
+    parse_arguments,
+    replay,
+    summary_lines,
+)
 
 # 10 places along a line, then places 0..5 again; 3 scans may not match their neighbours.
 ROUTE = list(range(10)) + list(range(6))
@@ -249,6 +257,53 @@ def test_cli_runs_and_prints_summary(tmp_path: Path, bags: dict[str, Path],
     assert report['config']['exclude_recent_frames'] == 3
     assert report['config']['distance_threshold'] == 0.02
     assert report['params_file'] == str(params)
+
+
+@pytest.mark.parametrize('argv', [
+    ['BAG', '--set', 'fov_up_deg=52.0', 'fov_down_deg=-7.0'],
+    ['--set', 'fov_up_deg=52.0', 'fov_down_deg=-7.0', 'BAG'],
+    ['--set', 'fov_up_deg=52.0', '--set', 'fov_down_deg=-7.0', 'BAG'],
+    ['--set=fov_up_deg=52.0', 'fov_down_deg=-7.0', 'BAG', '-q'],
+    ['--set', 'fov_up_deg=52.0', '-q', 'BAG', '--set', 'fov_down_deg=-7.0'],
+], ids=['after the bag', 'before the bag', 'repeated', 'with =', 'split'])
+def test_set_takes_several_pairs_or_repeats(argv: list[str]) -> None:
+    args = parse_arguments(argv)
+    assert args.bag == ['BAG'] and args.set == ['fov_up_deg=52.0', 'fov_down_deg=-7.0']
+
+
+def test_set_leaves_bags_and_options_alone() -> None:
+    # A fleet's bags on either side of the overrides.
+    for argv in (['A', 'B', '--set', 'a=1', 'b=2'], ['--set', 'a=1', 'b=2', 'A', 'B'],
+                 ['A', '--set', 'a=1', 'b=2', 'B']):
+        args = parse_arguments(argv)
+        assert (args.bag, args.set) == (['A', 'B'], ['a=1', 'b=2']), argv
+    # A bag with '=' in its name: written with a path, or before --set, or after '--'.
+    args = parse_arguments(['--set', 'a=1', './run=3', 'B'])
+    assert (args.bag, args.set) == (['./run=3', 'B'], ['a=1'])
+    assert parse_arguments(['run=3', '--set', 'a=1']).bag == ['run=3']
+    assert parse_arguments(['--set', 'a=1', '--', 'run=3']).bag == ['run=3']
+    # The value right after --set is its own, whatever it is; the next option ends the run.
+    args = parse_arguments(['--set', 'oops', 'a=1', '--radius', '2', 'B'])
+    assert (args.bag, args.set, args.radius) == (['B'], ['oops', 'a=1'], 2.0)
+    assert expand_set_arguments(['--set']) == ['--set']
+
+
+def test_set_pairs_reach_the_replay(tmp_path: Path, bags: dict[str, Path],
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / 'o'
+    code = main(['--set', 'fov_up_deg=5.0', 'fov_down_deg=-30.0', str(bags['mcap']),
+                 '--out', str(out), '--no-plots', '-q'])
+    assert code == 0, capsys.readouterr().err
+    config = json.loads((out / 'report.json').read_text())['config']
+    assert (config['fov_up_deg'], config['fov_down_deg']) == (5.0, -30.0)
+    # A typo among several pairs: one line naming it, exit 1.
+    assert main([str(bags['mcap']), '--set', 'fov_up_deg=5.0', 'fov_dwon_deg=-30.0']) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "unknown parameter 'fov_dwon_deg'" in err[0], err
+    # No pair at all after --set.
+    with pytest.raises(SystemExit) as exc:
+        main([str(bags['mcap']), '--set'])
+    assert exc.value.code == 2
 
 
 def test_cli_quiet(bags: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
