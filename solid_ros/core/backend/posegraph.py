@@ -71,7 +71,15 @@ from solid_ros.core.backend.solver import FactorRecord, GraphSolver
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.geometry import pose_to_vector, vector_to_matrix
 from solid_ros.core.odometry.track import OdomSample
-from solid_ros.core.results import BackendEvent, BackendState, Keyframe, LoopCandidate, LoopOutcome, ScanResult, loop_name
+from solid_ros.core.results import (
+    BackendEvent,
+    BackendState,
+    Keyframe,
+    LoopCandidate,
+    LoopOutcome,
+    ScanResult,
+    loop_name,
+)
 
 __all__ = ['PoseGraph', 'key_of']
 

@@ -102,7 +102,15 @@ from solid_ros.core.geometry import (
 )
 from solid_ros.core.odometry.track import OdometryPath, disagreement
 from solid_ros.core.reasons import Reason
-from solid_ros.core.results import NAN_COV, Descriptor, LoopCandidate, Match, ScanResult, Source, StageTimes
+from solid_ros.core.results import (
+    NAN_COV,
+    Descriptor,
+    LoopCandidate,
+    Match,
+    ScanResult,
+    Source,
+    StageTimes,
+)
 from solid_ros.core.stamps import check_stamp
 from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
 from solid_ros.core.verification.registration import Query, coarsened

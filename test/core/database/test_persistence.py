@@ -327,7 +327,7 @@ def test_stale_temporaries_are_removed_unless_a_save_holds_them(tmp_path: Path) 
 def test_a_killed_save_leaves_a_temporary_the_next_save_removes(tmp_path: Path) -> None:
     target = tmp_path / 'db.npz'
     code = ('import sys, time, numpy as np\n'
-            'from solid_ros.core.database.descriptors import persistence\n'
+            'from solid_ros.core.database import persistence\n'
             'from solid_ros.core.database.descriptors import DescriptorDatabase\n'
             'from solid_ros.core.config import SolidConfig\n'
             'def slow(f, **arrays):\n'
