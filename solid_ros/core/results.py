@@ -12,7 +12,8 @@ imports nothing of the core beyond the base modules.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from collections.abc import Iterator
+from dataclasses import asdict, astuple, dataclass, fields
 from typing import Any, Literal
 
 import numpy as np
@@ -21,9 +22,9 @@ import numpy.typing as npt
 from solid_ros.core.geometry import vector_to_matrix
 from solid_ros.core.reasons import Reason
 
-__all__ = ['ACCEPTED', 'IDENTITY_POSE', 'NAN_COV', 'BackendEvent', 'BackendState',
-           'Descriptor', 'Keyframe', 'LoopCandidate', 'LoopOutcome', 'Match', 'ScanResult',
-           'Source', 'StageTimes', 'loop_name']
+__all__ = ['ACCEPTED', 'EVIDENCE_FIELDS', 'IDENTITY_POSE', 'NAN_COV', 'BackendEvent',
+           'BackendState', 'Descriptor', 'Evidence', 'Keyframe', 'LoopCandidate', 'LoopOutcome',
+           'Match', 'ScanResult', 'Source', 'StageTimes', 'loop_name']
 
 FloatArray = npt.NDArray[np.float64]
 NAN_COV: tuple[float, ...] = (math.nan,) * 36
@@ -83,6 +84,75 @@ class Match:
 
 
 @dataclass(frozen=True)
+class Evidence:
+    """Everything measured about one loop candidate: what the judge's rules read
+    (:mod:`solid_ros.core.verification.judge`). NaN: not measured, because an earlier rule
+    refused the candidate or no rule needed it; flags are 1.0 or 0.0.
+
+    Attributes:
+        cloud: the candidate has a stored keyframe cloud (1) or none (0).
+        usable: both clouds hold enough points and structure to register (1) or not (0).
+        coarse_overlap: fraction of coarse structure points that the coarse stage aligned.
+        converged: the fine stage converged (1) or not (0).
+        overlap: structure overlap of the alignment, the smaller of the two directions.
+        known_place: the pose puts the query where the pose graph predicted it, within one
+            coarse voxel counting its sigmas (1) or not (0).
+        rmse: RMS point-to-plane distance of the supporting points, metres.
+        conflict: fraction of one scan's points in space the other sensor saw through.
+        constraint: least horizontal constraint per structure point (10 m heading lever).
+        constraint_near: the same with the supporting structure's own range as the lever.
+        spread: the constraint left without the strongest object.
+        drift_m: largest translation of the two consistency restarts from the pose, metres.
+        drift_deg: their largest rotation from it, degrees.
+        drift_turn_deg: the turn they were started with, degrees.
+        second_minimum: a far restart found a better pose, which the rules then judged (1).
+        pinned_m: two sigmas of the loop covariance's least pinned translation, metres.
+        pinned_deg: two sigmas of its least pinned rotation, degrees.
+        odom_error_m: how far the loop's translation is from the odometry's, metres.
+        odom_allowed_m: what the odometry's drift over the path between them allows, metres.
+        graph_turn_deg: how far the loop turns from the pose graph's relative heading.
+        graph_turn_tol_deg: the heading tolerance the graph allows.
+        graph_stray_m: how far the loop moves the query's view from the graph's guess.
+        graph_stray_allowed_m: what the graph's sigmas allow, metres.
+        graph: the candidate was proposed by the pose graph (1) or the descriptor (0).
+        step: a registered step to the previous keyframe (1), not a loop (0).
+    """
+
+    cloud: float = math.nan
+    usable: float = math.nan
+    coarse_overlap: float = math.nan
+    converged: float = math.nan
+    overlap: float = math.nan
+    known_place: float = math.nan
+    rmse: float = math.nan
+    conflict: float = math.nan
+    constraint: float = math.nan
+    constraint_near: float = math.nan
+    spread: float = math.nan
+    drift_m: float = math.nan
+    drift_deg: float = math.nan
+    drift_turn_deg: float = math.nan
+    second_minimum: float = math.nan
+    pinned_m: float = math.nan
+    pinned_deg: float = math.nan
+    odom_error_m: float = math.nan
+    odom_allowed_m: float = math.nan
+    graph_turn_deg: float = math.nan
+    graph_turn_tol_deg: float = math.nan
+    graph_stray_m: float = math.nan
+    graph_stray_allowed_m: float = math.nan
+    graph: float = math.nan
+    step: float = math.nan
+
+    def __iter__(self) -> Iterator[float]:
+        """The values in field order (one CSV column each)."""
+        return iter(astuple(self))
+
+
+EVIDENCE_FIELDS: tuple[str, ...] = tuple(f.name for f in fields(Evidence))
+
+
+@dataclass(frozen=True)
 class LoopCandidate:
     """A loop between the current scan and a stored one, published or only attempted.
 
@@ -104,16 +174,13 @@ class LoopCandidate:
             descriptor's yaw (no translation).
         fitness: fraction of the match's cloud points supporting the alignment (NaN when no
             registration ran).
-        rmse: RMS point-to-plane distance of the supporting points, metres.
         covariance: 6x6 row-major covariance of ``T`` (ROS order x, y, z, roll, pitch, yaw;
             right perturbation in the query sensor frame); NaN unless verified.
-        reason: ``'verified'``, ``'descriptor'`` (accepted without verification), the
-            verification test that rejected it, or ``'odometry'`` (this session's odometry
-            contradicts it).
-        overlap: structure overlap of the alignment (NaN when no fine registration ran).
-        conflict: free-space conflict of the alignment (NaN: not measured).
-        constraint: horizontal constraint per structure point (NaN: not measured).
-        spread: the constraint without the strongest object (NaN: not measured).
+        reason: ``'verified'``, ``'descriptor'`` (accepted without verification) or the
+            judge's rule that refused it (:data:`~solid_ros.core.verification.judge.RULES`).
+        evidence: what was measured about it, as the judge read it.
+        detail: the refusing rule's reading, e.g. ``'conflict 0.057 > 0.030'`` (empty when
+            accepted).
         source: what proposed it: ``'descriptor'`` (the descriptor's nearest places) or
             ``'graph'`` (a keyframe near the query in the back end's estimate, see
             :mod:`solid_ros.core.candidates.position`; its ``margin`` is NaN), or ``'step'`` (the
@@ -131,14 +198,36 @@ class LoopCandidate:
     verified: bool = False
     pose: tuple[float, ...] = IDENTITY_POSE
     fitness: float = math.nan
-    rmse: float = math.nan
     covariance: tuple[float, ...] = NAN_COV
     reason: Reason = 'descriptor'
-    overlap: float = math.nan
-    conflict: float = math.nan
-    constraint: float = math.nan
-    spread: float = math.nan
+    evidence: Evidence = Evidence()
     source: Source = 'descriptor'
+    detail: str = ''
+
+    @property
+    def rmse(self) -> float:
+        """RMS point-to-plane distance of the supporting points, metres (NaN: not measured)."""
+        return self.evidence.rmse
+
+    @property
+    def overlap(self) -> float:
+        """Structure overlap of the alignment (NaN: no fine registration ran)."""
+        return self.evidence.overlap
+
+    @property
+    def conflict(self) -> float:
+        """Free-space conflict of the alignment (NaN: not measured)."""
+        return self.evidence.conflict
+
+    @property
+    def constraint(self) -> float:
+        """Horizontal constraint per structure point (NaN: not measured)."""
+        return self.evidence.constraint
+
+    @property
+    def spread(self) -> float:
+        """The constraint without the strongest object (NaN: not measured)."""
+        return self.evidence.spread
 
     def to_dict(self) -> dict[str, Any]:
         """Return the fields as a plain dict."""

@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import SolidError
-from solid_ros.core.results import LoopCandidate
+from solid_ros.core.results import EVIDENCE_FIELDS, LoopCandidate
 from solid_ros.core.stamps import join_stamp, split_stamp
 
 __all__ = ['BASE_COLUMNS', 'CANDIDATE_FIELDS', 'COLUMNS', 'COLUMNS_LABEL', 'COV_COLUMNS',
@@ -39,7 +39,8 @@ __all__ = ['BASE_COLUMNS', 'CANDIDATE_FIELDS', 'COLUMNS', 'COLUMNS_LABEL', 'COV_
 # own name. Rows of messages split the stamps (see split_stamp).
 POSE_COLUMNS: tuple[str, ...] = ('tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw')
 COV_COLUMNS: tuple[str, ...] = tuple(f'cov_{i}' for i in range(36))
-SPANS: dict[str, tuple[str, ...]] = {'pose': POSE_COLUMNS, 'covariance': COV_COLUMNS}
+SPANS: dict[str, tuple[str, ...]] = {'pose': POSE_COLUMNS, 'covariance': COV_COLUMNS,
+                                     'evidence': EVIDENCE_FIELDS}
 _SPLIT = {'query_stamp_ns': ('query_stamp_sec', 'query_stamp_nanosec'),
           'match_stamp_ns': ('match_stamp_sec', 'match_stamp_nanosec')}
 CANDIDATE_FIELDS: tuple[str, ...] = tuple(f.name for f in fields(LoopCandidate))
@@ -59,7 +60,8 @@ def candidate_columns(layout: Iterable[str], *, extra: Iterable[str] = (),
 
     Args:
         layout: names in column order: LoopCandidate fields (``pose`` spans ``tx`` ... ``qw``,
-            ``covariance`` ``cov_0`` ... ``cov_35``) and names from ``extra``.
+            ``covariance`` ``cov_0`` ... ``cov_35``, ``evidence`` one column per Evidence
+            field), single Evidence fields, and names from ``extra``.
         extra: columns that are no field (what a tool adds), one column each.
         split_stamps: a stamp spans ``*_stamp_sec`` and ``*_stamp_nanosec``.
 
@@ -71,8 +73,8 @@ def candidate_columns(layout: Iterable[str], *, extra: Iterable[str] = (),
     for name in layout:
         if name in others:
             out.append(name)
-        elif name not in CANDIDATE_FIELDS:
-            raise ValueError(f'{name!r} is not a LoopCandidate field')
+        elif name not in CANDIDATE_FIELDS and name not in EVIDENCE_FIELDS:
+            raise ValueError(f'{name!r} is not a LoopCandidate or Evidence field')
         elif split_stamps and name in _SPLIT:
             out.extend(_SPLIT[name])
         else:
@@ -81,7 +83,10 @@ def candidate_columns(layout: Iterable[str], *, extra: Iterable[str] = (),
 
 
 def candidate_values(candidate: Any, name: str, *, split_stamps: bool = False) -> tuple[Any, ...]:
-    """The values of one LoopCandidate field, one per column of :func:`candidate_columns`."""
+    """The values of one LoopCandidate field (or of its evidence), one per column of
+    :func:`candidate_columns`."""
+    if name not in CANDIDATE_FIELDS and name in EVIDENCE_FIELDS:
+        return (getattr(candidate.evidence, name),)
     value = getattr(candidate, name)
     if name in SPANS:
         return tuple(value)

@@ -33,11 +33,11 @@ __all__ = ['CSV_COLUMNS', 'CSV_EXTRA', 'CSV_LAYOUT', 'candidate_cells', 'write_o
 # README lists the columns); a field added to LoopCandidate must be placed here.
 CSV_EXTRA = ('accepted', 'best', 'true_match', 'gt_distance_m', 'yaw_gt', 'trans_err_m',
              'rot_err_deg', 'pose_correct')
+# The evidence the judge read spans one column per field (rmse among them).
 CSV_LAYOUT = ('query_index', 'match_index', 'query_stamp_ns', 'match_stamp_ns',
               'match_session', 'distance', 'yaw', 'margin', 'accepted', 'best', 'true_match',
-              'gt_distance_m', 'yaw_gt', 'verified', 'reason', 'pose', 'fitness', 'rmse',
-              'overlap', 'conflict', 'constraint', 'spread', 'trans_err_m', 'rot_err_deg',
-              'pose_correct', 'covariance', 'source')
+              'gt_distance_m', 'yaw_gt', 'verified', 'reason', 'detail', 'pose', 'fitness',
+              'evidence', 'trans_err_m', 'rot_err_deg', 'pose_correct', 'covariance', 'source')
 CSV_COLUMNS = candidate_columns(CSV_LAYOUT, extra=CSV_EXTRA)
 
 Format = Callable[[Any], Any]
@@ -59,8 +59,7 @@ def _margin(v: float) -> str:
 
 _FORMATS: dict[str, Format] = {
     'distance': _fixed, 'yaw': _fixed, 'margin': _margin, 'verified': int, 'pose': _fixed,
-    **dict.fromkeys(('fitness', 'rmse', 'overlap', 'conflict', 'constraint', 'spread',
-                     'covariance'), _num)}
+    **dict.fromkeys(('fitness', 'rmse', 'evidence', 'covariance'), _num)}
 
 
 def candidate_cells(c: LoopCandidate, layout: Sequence[str], formats: Mapping[str, Format],

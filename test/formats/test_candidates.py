@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from solid_ros.core.results import LoopCandidate
+from solid_ros.core.results import EVIDENCE_FIELDS, Evidence, LoopCandidate
 from solid_ros.formats.candidates import (
     BASE_COLUMNS,
     CANDIDATE_FIELDS,
@@ -53,10 +53,10 @@ def test_columns_are_derived_from_the_candidate_fields() -> None:
     assert COLUMNS == (BASE_COLUMNS + ('verified', 'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw',
                                        'fitness', 'rmse')
                        + tuple(f'cov_{i}' for i in range(36)) + ('source',))
-    assert set(MESSAGE_FIELDS) <= set(CANDIDATE_FIELDS)
+    assert set(MESSAGE_FIELDS) <= set(CANDIDATE_FIELDS) | set(EVIDENCE_FIELDS)
     assert candidate_columns(['pose', 'extra', 'query_stamp_ns'], extra=['extra']) == (
         'tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw', 'extra', 'query_stamp_ns')
-    with pytest.raises(ValueError, match="'tilt' is not a LoopCandidate field"):
+    with pytest.raises(ValueError, match="'tilt' is not a LoopCandidate or Evidence field"):
         candidate_columns(['query_index', 'tilt'])
 
 
@@ -146,7 +146,8 @@ def test_pose_columns_round_trip_and_old_layout_decodes() -> None:
     cov = tuple(float(i) for i in range(36))
     cand = LoopCandidate(9, 2, 5_000_000_000, 1_000_000_000, 0, 0.1, 0.5, 0.2, verified=True,
                          pose=(1.0, -2.0, 0.5, 0.0, 0.0, 0.2474, 0.9689), fitness=0.8,
-                         rmse=0.03, covariance=cov, reason='verified')
+                         evidence=Evidence(rmse=0.03), covariance=cov,
+                         reason='verified')
     (got,) = decode_candidates(_msg(to_rows([cand])))
     assert got['verified'] == 1 and isinstance(got['verified'], int)
     assert [got[c] for c in ('tx', 'ty', 'tz', 'qx', 'qy', 'qz', 'qw')] == list(cand.pose)

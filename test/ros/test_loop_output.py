@@ -58,10 +58,11 @@ def test_publishes_logs_and_draws_each_loop() -> None:
 
 
 def test_loop_line_of_a_verified_loop() -> None:
-    from solid_ros.core.results import LoopCandidate
+    from solid_ros.core.results import Evidence, LoopCandidate
 
     c = LoopCandidate(9, 2, 5 * SEC + 7, SEC, 0, 0.1, 0.5, 0.2, verified=True,
-                      pose=(1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0), fitness=0.8, rmse=0.05)
+                      pose=(1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0), fitness=0.8,
+                      evidence=Evidence(rmse=0.05))
     assert loop_line(c) == ('loop: keyframe 9 (5.000000007 s) -> session 0 keyframe 2 '
                             '(1.000000000 s), verified, fitness 0.80, rmse 0.050 m, yaw 28.6 '
                             'deg, t (1.00, 2.00, 3.00) m')

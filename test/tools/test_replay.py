@@ -16,7 +16,7 @@ from project_paths import CONFIG_DIR  # noqa: E402
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.errors import ConfigError
 from solid_ros.core.flow.detector import LoopDetector
-from solid_ros.core.verification.verifier import REASONS
+from solid_ros.core.reasons import RULE_REASONS as REASONS
 from solid_ros.formats.bags import POINTCLOUD2, BagWriter, write_cloud_bag
 from solid_ros.formats.pointcloud2 import CloudLayout, encode_points
 from solid_ros.tools.plots import PLOT_FILES

@@ -39,8 +39,8 @@ from solid_ros.core.descriptor.mount import Mount
 from solid_ros.core.geometry import vector_to_matrix, yaw_of
 from solid_ros.core.results import Match
 
-__all__ = ['STRAY_FLOOR_M', 'extent', 'hit_knows_place', 'shared_hits', 'strayed_from_guess',
-           'turned_from_guess', 'view_centre', 'with_graph_hits']
+__all__ = ['STRAY_FLOOR_M', 'extent', 'graph_stray', 'graph_turn', 'hit_knows_place',
+           'shared_hits', 'view_centre', 'with_graph_hits']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -197,28 +197,32 @@ def hit_knows_place(hit: Hit, centre: FloatArray, config: SolidConfig,
                        coarse_voxel)
 
 
-def turned_from_guess(hit: Hit, T_mq: FloatArray) -> bool:
-    """Whether a loop the graph placed (proposed, or the descriptor's with the graph's guess)
-    turns from the graph's relative heading by more than the hit's tolerance (levelled
-    frames; see :mod:`solid_ros.core.candidates.position`)."""
+def graph_turn(hit: Hit, T_mq: FloatArray) -> tuple[float, float]:
+    """How far a loop the graph placed (proposed, or the descriptor's with the graph's guess)
+    turns from the graph's relative heading, and the hit's tolerance, degrees (levelled
+    frames; see :mod:`solid_ros.core.candidates.position`); NaN without a guess."""
     if hit.guess is None:
-        return False
+        return math.nan, math.nan
     turn = math.degrees(abs(yaw_of(np.linalg.solve(hit.guess, T_mq)[:3, :3])))
-    return turn > hit.heading_tol_deg
+    return turn, hit.heading_tol_deg
 
 
-def strayed_from_guess(hit: Hit, centre: FloatArray, config: SolidConfig,
-                       T_mq: FloatArray, floor_m: float = STRAY_FLOOR_M) -> bool:
-    """Whether a loop the graph placed moves the query's view ``centre`` from the graph's
-    guess by more than ``graph_candidate_sigmas`` of the query's sigma relative to the match
-    plus ``floor_m`` (levelled frames; two tight-space keyframes pass a smaller one)."""
+def graph_stray(hit: Hit, centre: FloatArray, config: SolidConfig, T_mq: FloatArray,
+                voxel: float) -> tuple[float, float]:
+    """How far a loop the graph placed moves the query's view ``centre`` from the graph's
+    guess, and what it allows: ``graph_candidate_sigmas`` of the query's sigma relative to the
+    match plus ``STRAY_FLOOR_M``, or two of the pair's fine voxels (``voxel``) where that is
+    less (two tight-space keyframes, or a grid set finer by hand: in the simulator's rooms right
+    loops lay within 0.3 m of the guess, slides along shelves 0.7-1.7 m); levelled frames, NaN
+    without a guess or a finite sigma."""
     if hit.guess is None:
-        return False
+        return math.nan, math.nan
     sigma = hit.sigma_m if hit.place_sigma is None else hit.place_sigma()
     if not math.isfinite(sigma):
-        return False
-    return (guess_deviation(hit.guess, T_mq, centre)
-            > floor_m + config.graph_candidate_sigmas * sigma)
+        return math.nan, math.nan
+    floor = min(STRAY_FLOOR_M, 2.0 * voxel)
+    return (guess_deviation(hit.guess, T_mq, centre),
+            floor + config.graph_candidate_sigmas * sigma)
 
 
 def view_centre(cloud: FloatArray, mount: Mount) -> FloatArray:

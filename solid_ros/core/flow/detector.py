@@ -76,15 +76,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.candidates.covisibility import StructureIndex, coarse_structure
-from solid_ros.core.candidates.hits import (
-    STRAY_FLOOR_M,
-    hit_knows_place,
-    shared_hits,
-    strayed_from_guess,
-    turned_from_guess,
-    view_centre,
-    with_graph_hits,
-)
+from solid_ros.core.candidates.hits import shared_hits, view_centre, with_graph_hits
 from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Hit, Proposal
 from solid_ros.core.config import SolidConfig
@@ -94,6 +86,7 @@ from solid_ros.core.descriptor.matching import estimate_yaw, heading_hypotheses
 from solid_ros.core.descriptor.mount import Mount
 from solid_ros.core.descriptor.solid import describe, preprocess, voxel_downsample
 from solid_ros.core.errors import CloudError, ConfigError
+from solid_ros.core.flow.place import HitPlace
 from solid_ros.core.geometry import (
     pose_to_vector,
     rot_z,
@@ -112,9 +105,11 @@ from solid_ros.core.results import (
     StageTimes,
 )
 from solid_ros.core.stamps import check_stamp
+from solid_ros.core.verification.judge import Measures, judge
+from solid_ros.core.verification.judge import bars as judge_bars
 from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
 from solid_ros.core.verification.registration import Query, coarsened
-from solid_ros.core.verification.verifier import TIGHT_GRID, CoarseResult, Verification, Verifier
+from solid_ros.core.verification.verifier import TIGHT_GRID, Verification, Verifier
 
 __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
            'Source', 'StageTimes']
@@ -123,10 +118,6 @@ FloatArray = npt.NDArray[np.float64]
 # (robot = its session id, index, stamp_ns) of a peer's keyframe -> its cloud, or the reason
 # there is none.
 CloudFetcher = Callable[[int, int, int], 'KeyframeCloud | Reason']
-# A keyframe proposed by position alone has no descriptor evidence, so its alignment must be
-# better constrained: in the simulator's cluttered room one at 0.0079 (bar 0.0075) was 5 deg
-# off; hku1's correct graph loops start at 0.0076, then 0.0106.
-GRAPH_CONSTRAINT_FACTOR = 1.25
 
 
 class LoopDetector:
@@ -502,32 +493,48 @@ class LoopDetector:
             proposal.query_index, m.index, proposal.stamp_ns, m.stamp_ns, m.session,
             m.distance, result.yaw if result.verified else yaw, hit.margin,
             verified=result.verified, pose=self._mount.unlevel_pose(result.T),
-            fitness=result.fitness, rmse=result.rmse, covariance=cov, reason=result.reason,
-            overlap=result.overlap, conflict=result.conflict, constraint=result.constraint,
-            spread=result.spread, source=hit.source)
+            fitness=result.fitness, covariance=cov, reason=result.reason,
+            evidence=result.evidence, source=hit.source, detail=result.detail)
 
-    def _odometry_refuses(self, proposal: Proposal, match: Match, T_mq: FloatArray) -> bool:
-        """Whether this session's odometry contradicts the loop ``T_mq`` (sensor frames, not
-        levelled) from the query to ``match``."""
+    def _odometry(self, proposal: Proposal, match: Match, T_mq: FloatArray
+                  ) -> tuple[float, float]:
+        """The odometry check of a loop ``T_mq`` (sensor frames, not levelled) from the query
+        to ``match``: how far its translation is from this session's odometry, and what
+        ``odom_check_drift`` of the path driven between them plus ``odom_check_slack_m``
+        allows; NaN where the odometry says nothing (check off, another session, no pose)."""
         cfg = self._config
         if (cfg.odom_check_drift <= 0.0 or match.session != cfg.session_id
                 or proposal.pose is None):
-            return False
+            return math.nan, math.nan
         pose_m = self.database.pose(match.seq)
         path = self._path.between(match.index, proposal.query_index)
         if pose_m is None or path is None:
-            return False
+            return math.nan, math.nan
         allowed = cfg.odom_check_drift * path + cfg.odom_check_slack_m
-        return disagreement(T_mq, proposal.pose, pose_m) > allowed
+        return disagreement(T_mq, proposal.pose, pose_m), allowed
+
+    def _place(self, proposal: Proposal, hit: Hit, centre: FloatArray) -> HitPlace:
+        """What the judge's context rules ask of a hit's place (levelled poses)."""
+        def odom(T_mq: FloatArray) -> tuple[float, float]:
+            return self._odometry(proposal, hit.match, self._mount.unlevel(T_mq))
+
+        return HitPlace(hit, centre, self._config, odom)
 
     def _accept_by_descriptor(self, proposal: Proposal, gap_blocked: bool) -> list[LoopCandidate]:
+        """Without verification only the context rules judge (the odometry: no pose to place
+        in a graph)."""
         mode = self._config.heading_match
+        bars = judge_bars(self._config)
         out = []
         for h in proposal.hits:
             c = self._candidate(proposal, h, estimate_yaw(proposal.heading, h.heading, mode), None)
-            if self._odometry_refuses(proposal, h.match, c.matrix()):
-                c = replace(c, reason='odometry')
-                self.reasons['odometry'] += 1
+            error, allowed = self._odometry(proposal, h.match, c.matrix())
+            verdict = judge(Measures(odom_error_m=error, odom_allowed_m=allowed), bars,
+                            'context')
+            if not verdict.verified:
+                c = replace(c, reason=verdict.reason, evidence=verdict.evidence,
+                            detail=verdict.detail)
+                self.reasons[verdict.reason] += 1
             out.append(c)
         return out
 
@@ -632,17 +639,7 @@ class LoopDetector:
                 break  # enough distinct places: the rest stay unverified ('skipped')
             if any(_same_place(hit.match, v, cfg.margin_neighbourhood) for v in verified):
                 continue
-            place = None if hit.guess is None else partial(hit_knows_place, hit, centre, cfg)
-            fine = verifier.fine(query, c, place=place)
-            if fine.verified and (self._odometry_refuses(proposal, hit.match,
-                                                         self._mount.unlevel(fine.T))
-                                  or turned_from_guess(hit, fine.T)
-                                  or strayed_from_guess(hit, centre, cfg, fine.T,
-                                                        _stray_floor(c))):
-                fine = replace(fine, verified=False, reason='odometry', covariance=None)
-            elif (fine.verified and hit.source == 'graph'
-                  and not fine.constraint >= GRAPH_CONSTRAINT_FACTOR * cfg.verify_min_constraint):
-                fine = replace(fine, verified=False, reason='constraint', covariance=None)
+            fine = verifier.fine(query, c, place=self._place(proposal, hit, centre))
             results[i] = fine
             if fine.verified:
                 verified.append(hit.match)
@@ -751,16 +748,6 @@ def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
     return (f'no usable point: 0 of {n} points are finite and inside the range gate '
             f'({cfg.min_range:g} to {cfg.max_range:g} m), the FOV ({cfg.fov_width_deg:g} deg) '
             f'and max_distance ({cfg.max_distance:g} m)')
-
-
-def _stray_floor(coarse: CoarseResult) -> float:
-    """How far beyond the graph's sigmas a loop may move the query from the graph's guess:
-    ``STRAY_FLOOR_M``, or two of the pair's fine voxels where that is less (two tight-space
-    keyframes, or a grid set finer by hand: in the simulator's rooms right loops lay within
-    0.3 m of the guess, slides along shelves 0.7-1.7 m)."""
-    if coarse.query is None:
-        return STRAY_FLOOR_M
-    return min(STRAY_FLOOR_M, 2.0 * coarse.query.settings.voxel)
 
 
 def _same_place(a: Match, b: Match, hood: int) -> bool:

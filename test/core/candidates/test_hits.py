@@ -10,9 +10,9 @@ import numpy as np
 from solid_ros.core.candidates.hits import (
     STRAY_FLOOR_M,
     extent,
+    graph_stray,
+    graph_turn,
     hit_knows_place,
-    strayed_from_guess,
-    turned_from_guess,
     view_centre,
 )
 from solid_ros.core.candidates.proposal import Hit
@@ -39,6 +39,19 @@ def test_a_known_place_takes_the_sigma_relative_to_the_match_when_there_is_one()
     assert asked == []
     assert hit_knows_place(rel, centre, cfg, guess)
     assert asked == [1]
+
+
+def turned_from_guess(hit: Hit, T_mq: np.ndarray) -> bool:
+    """The graph_heading rule's refusal."""
+    turn, tol = graph_turn(hit, T_mq)
+    return not math.isnan(turn) and turn > tol
+
+
+def strayed_from_guess(hit: Hit, centre: np.ndarray, cfg: SolidConfig, T_mq: np.ndarray,
+                       voxel: float = 0.5) -> bool:
+    """The graph_position rule's refusal (``voxel``: the pair's fine grid)."""
+    stray, allowed = graph_stray(hit, centre, cfg, T_mq, voxel)
+    return not math.isnan(stray) and stray > allowed
 
 
 def test_a_loop_the_graph_placed_may_not_turn_from_its_guess() -> None:
@@ -104,7 +117,7 @@ def test_two_tight_keyframes_may_stray_less() -> None:
     slid = guess.copy()
     slid[:3, 3] = [0.0, 1.68, 0.0]
     assert not strayed_from_guess(hit, centre, cfg, slid)
-    assert strayed_from_guess(hit, centre, cfg, slid, floor_m=0.5 * STRAY_FLOOR_M)
+    assert strayed_from_guess(hit, centre, cfg, slid, voxel=0.25)  # floor: two voxels
 
 
 def test_view_centre_and_extent_of_a_cloud() -> None:

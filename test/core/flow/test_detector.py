@@ -60,8 +60,7 @@ def test_revisit_is_found_with_fields_and_yaw() -> None:
     assert set(cand.to_dict()) == {'query_index', 'match_index', 'query_stamp_ns',
                                    'match_stamp_ns', 'match_session', 'distance', 'yaw',
                                    'margin', 'verified', 'pose', 'fitness', 'rmse',
-                                   'covariance', 'reason', 'overlap', 'conflict', 'constraint',
-                                   'spread', 'source'}
+                                   'covariance', 'reason', 'evidence', 'source', 'detail'}
     assert cand.source == 'descriptor'
     # Descriptor only: the pose is the yaw guess, nothing verified.
     assert (cand.verified, cand.reason) == (False, 'descriptor')
@@ -539,20 +538,16 @@ def test_a_tilted_keyframe_is_gridded_upright_when_its_pose_says_so() -> None:
 
 
 def test_a_finer_grid_takes_a_smaller_stray_floor() -> None:
-    from solid_ros.core.candidates.hits import STRAY_FLOOR_M
-    from solid_ros.core.flow.detector import _stray_floor
-    from solid_ros.core.verification.registration import Query
-    from solid_ros.core.verification.verifier import CoarseResult, Verifier
+    from solid_ros.core.candidates.hits import STRAY_FLOOR_M, graph_stray
+    from solid_ros.core.candidates.proposal import Hit
+    from solid_ros.core.results import Match
 
-    pts = np.zeros((3, 3))
-    v = Verifier(SolidConfig())  # 0.5 m voxels: two tight-space keyframes register on 0.25 m
-    tight = CoarseResult('k', None, None, None, Query(pts, v.tight_settings))
-    open_ = CoarseResult('k', None, None, None, Query(pts, v.settings))
-    assert _stray_floor(tight) == pytest.approx(0.5 * STRAY_FLOOR_M)
-    assert _stray_floor(open_) == STRAY_FLOOR_M
-    assert _stray_floor(CoarseResult('k', None, None, None)) == STRAY_FLOOR_M
-    # A grid set finer by hand too; a coarser one (hdl64.yaml, 0.75 m) keeps the floor.
-    fine = Verifier(SolidConfig().replace(verify_voxel_size=0.25)).settings
-    coarse = Verifier(SolidConfig().replace(verify_voxel_size=0.75)).settings
-    assert _stray_floor(CoarseResult('k', None, None, None, Query(pts, fine))) == 0.5
-    assert _stray_floor(CoarseResult('k', None, None, None, Query(pts, coarse))) == 1.0
+    hit = Hit(Match(0, 1, 0, 0, math.nan), math.nan, np.zeros(0, np.float32), 'graph',
+              np.eye(4), sigma_m=0.0)
+    centre = np.zeros(3)
+    # 0.5 m voxels: the floor; two tight-space keyframes register on 0.25 m: two of them.
+    assert graph_stray(hit, centre, SolidConfig(), np.eye(4), 0.5)[1] == STRAY_FLOOR_M
+    assert graph_stray(hit, centre, SolidConfig(), np.eye(4), 0.25)[1] == pytest.approx(0.5)
+    # A coarser grid (hdl64.yaml, 0.75 m) keeps the floor.
+    assert graph_stray(hit, centre, SolidConfig(), np.eye(4), 0.75)[1] == STRAY_FLOOR_M
+

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import lru_cache
 from typing import Any
 
@@ -21,12 +22,15 @@ from solid_ros.core.descriptor.matching import heading_hypotheses
 from solid_ros.core.descriptor.solid import describe
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.geometry import rpy_matrix
+from solid_ros.core.reasons import RULE_REASONS as REASONS
 from solid_ros.core.results import LoopCandidate
 from solid_ros.core.verification.covariance import (
     RESIDUAL_SCALE,
     TIGHT_RESIDUAL,
     support_covariance,
 )
+from solid_ros.core.verification.judge import KNOWN_PLACE_SHARE as KNOWN_PLACE_OVERLAP
+from solid_ros.core.verification.judge import judge
 from solid_ros.core.verification.registration import (
     Source,
     Support,
@@ -35,12 +39,7 @@ from solid_ros.core.verification.registration import (
     free_space_conflict,
     range_image,
 )
-from solid_ros.core.verification.verifier import (
-    KNOWN_PLACE_OVERLAP,
-    REASONS,
-    Verifier,
-    registration_settings,
-)
+from solid_ros.core.verification.verifier import PoseMeasures, Verifier, registration_settings
 from solid_ros.sim import DEMO_SENSORS, avia_like, cast_scan
 from solid_ros.sim.drive import Drive, DriveConfig, pose_matrix
 from solid_ros.sim.scene import Room, build_room
@@ -48,6 +47,27 @@ from solid_ros.sim.trajectory import handheld_walk
 from solid_ros.tools.uncertainty import nees
 
 pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+
+
+class _At:
+    """A place that only says whether the pose graph predicted a pose (no odometry, no
+    graph guess to measure against)."""
+
+    graph = False
+
+    def __init__(self, known: Callable[[np.ndarray, float], bool]) -> None:
+        self._known = known
+
+    def known(self, T_mq: np.ndarray, coarse_voxel: float) -> bool:
+        return self._known(T_mq, coarse_voxel)
+
+    def odometry(self, T_mq: np.ndarray) -> tuple[float, float]:
+        return math.nan, math.nan
+
+    heading = odometry
+
+    def position(self, T_mq: np.ndarray, voxel: float) -> tuple[float, float]:
+        return math.nan, math.nan
 
 FloatArray = npt.NDArray[np.float64]
 SEC = 1_000_000_000
@@ -418,7 +438,7 @@ def test_consistency_restarts_stay_within_reach_of_a_narrow_view_that_sees_far(
     assert t_err < 0.1 and r_err < 0.5
     assert coarse.source is not None
     info = Support(query, coarse.source, np.linalg.inv(res.T), v.settings).information
-    turn = v._drift(query, coarse.source, np.linalg.inv(res.T), info)[2]
+    turn = v.drift(query, coarse.source, np.linalg.inv(res.T), info)[2]
     assert 0.5 < turn < 1.5  # one 0.5 m voxel at 20-57 m
 
 
@@ -444,9 +464,10 @@ def test_a_second_minimum_along_the_street_is_refused(q: int, m: int) -> None:
     # The first minimum alone passes every test, off along the street.
     assert coarse.source is not None and coarse.alignment is not None
     first = align_fine(query, coarse.source, coarse.alignment.T_qm, v.settings).T_qm
-    alone, sup = v._tests(query, coarse.source, first, 1.0, 0, False, None)
+    measures = PoseMeasures(v, query, coarse.source, first, 1.0, True)
+    alone, sup = judge(measures, v.bars, 'fine'), measures.support
     assert alone.verified, alone
-    assert 0.5 < _pose_errors(drive, q, m, alone.T)[0] < 1.5
+    assert 0.5 < _pose_errors(drive, q, m, np.linalg.inv(first))[0] < 1.5
     other = v._second_minimum(query, coarse.source, first, sup)
     assert other is not None and _pose_errors(drive, q, m, np.linalg.inv(other))[0] < 0.1
 
@@ -505,7 +526,7 @@ def test_a_loop_its_own_covariance_does_not_pin_is_refused(
 
     monkeypatch.setattr(verification, 'support_covariance', loose)
     res, _, _ = _verify_room_pair(119, 15)
-    assert res.verified is kept and res.reason == ('verified' if kept else 'constraint'), res
+    assert res.verified is kept and res.reason == ('verified' if kept else 'pinned'), res
     # The calibrated covariance decides: a user's cautious scale changes no verdict.
     cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml').replace(verify_covariance_scale=4.0)
     res4, _, _ = _verify_room_pair(119, 15, cfg=cfg)
@@ -601,16 +622,16 @@ def test_a_known_place_measures_the_heading_at_the_rooms_own_range() -> None:
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
                                              cfg.verify_hypotheses, cfg.heading_match)]
     coarse = v.coarse(query, 'm', match, yaws)
-    unknown = v.fine(query, coarse, place=lambda T, c: False)
+    unknown = v.fine(query, coarse, place=_At(lambda T, c: False))
     assert unknown.reason == 'constraint' and unknown.constraint < cfg.verify_min_constraint
-    known = v.fine(query, coarse, place=lambda T, c: True)
+    known = v.fine(query, coarse, place=_At(lambda T, c: True))
     assert known.verified, known
-    assert known.constraint >= 3.0 * unknown.constraint  # the measure that passed
+    assert known.evidence.constraint_near >= 3.0 * unknown.constraint  # the one that passed
     t_err, r_err = _errors(known.T, np.linalg.inv(pm) @ pq)
     assert t_err < 0.05 and r_err < 0.5
     sup = Support(query, coarse.source, np.linalg.inv(known.T), query.settings)
     assert sup.constraint == pytest.approx(unknown.constraint, rel=1e-6)
-    assert sup.constraint_near == pytest.approx(known.constraint, rel=1e-6)
+    assert sup.constraint_near == pytest.approx(known.evidence.constraint_near, rel=1e-6)
     # On a street, where the supporting structure lies beyond 10 m, it is the constraint.
     v = Verifier(CFG)
     ref = _truth(273, 5)
@@ -639,7 +660,7 @@ def test_a_slide_along_the_rooms_structure_is_found_out_by_its_fit(q: int, m: in
     res = v.fine(query, coarse)
     assert not res.verified and res.reason == 'constraint', res
     assert _errors(res.T, np.linalg.inv(pm) @ pq)[0] < 0.1  # refused at the right pose
-    known = v.fine(query, coarse, place=lambda T, c: True)
+    known = v.fine(query, coarse, place=_At(lambda T, c: True))
     assert known.verified and _errors(known.T, np.linalg.inv(pm) @ pq)[0] < 0.1, known
 
 
@@ -701,9 +722,9 @@ def test_a_single_object_passes_only_where_the_graph_predicted_it() -> None:
 
     coarse = v.coarse(query, 'm', match, [0.0])
     assert v.fine(query, coarse).reason == 'single_object'
-    assert v.fine(query, coarse, place=lambda T, c: False).reason == 'single_object'
-    res = v.fine(query, coarse, place=predicted)
-    assert res.reason != 'single_object' and res.spread < cfg.verify_min_spread
+    assert v.fine(query, coarse, place=_At(lambda T, c: False)).reason == 'single_object'
+    res = v.fine(query, coarse, place=_At(predicted))
+    assert res.reason != 'single_object' and res.evidence.spread < cfg.verify_min_spread
     # The place is asked about the registered pose T_mq (query -> match): here +0.4, -0.3.
     assert len(seen) == 1 and np.allclose(seen[0][:2, 3], [0.4, -0.3], atol=0.1)
     # The place says which object, not that the pose is right: the match also holds a small
@@ -717,7 +738,7 @@ def test_a_single_object_passes_only_where_the_graph_predicted_it() -> None:
         vc = Verifier(c)
         qc = vc.prepare(_cloud(pts, c))
         got = vc.fine(qc, vc.coarse(qc, 'm', vc.prepare(_cloud(cluttered, c)).keyframe_cloud(),
-                                    [0.0]), place=predicted)
+                                    [0.0]), place=_At(predicted))
         assert got.conflict <= bar and (got.conflict <= bar / 2.0) is passes, got.conflict
         assert (got.reason != 'single_object') is passes, (bar, got.reason)
 
@@ -743,7 +764,7 @@ def test_a_known_place_asks_less_overlap_of_the_two_views() -> None:
         q = v.prepare(_cloud(pts, cfg))
         coarse = v.coarse(q, 'm', v.prepare(_cloud(match_pts, cfg)).keyframe_cloud(), [0.0])
         assert v.fine(q, coarse).reason == 'overlap'
-        assert v.fine(q, coarse, place=lambda T, c: False).reason == 'overlap'
-        known = v.fine(q, coarse, place=lambda T, c: True).reason
+        assert v.fine(q, coarse, place=_At(lambda T, c: False)).reason == 'overlap'
+        known = v.fine(q, coarse, place=_At(lambda T, c: True)).reason
         assert (known != 'overlap') is passes, (share, known)
     assert KNOWN_PLACE_OVERLAP == pytest.approx(0.7)
