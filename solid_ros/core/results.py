@@ -2,7 +2,7 @@
 
 A scan's :class:`Descriptor`; a stored scan a search returned (:class:`Match`); one loop,
 published or only attempted (:class:`LoopCandidate`: ``T`` maps the query sensor frame into
-the match's, covariance in ROS order with a right perturbation; see the README's conventions);
+the match's, covariance in ROS order with a right perturbation; see doc/conventions.md);
 what one scan gave (:class:`ScanResult`, with :class:`StageTimes`); and what the pose-graph
 back end did with a keyframe (:class:`Keyframe`, :class:`LoopOutcome`, :class:`BackendEvent`,
 :class:`BackendState`). Plain frozen dataclasses of numbers and numpy arrays: this module

@@ -4,7 +4,7 @@ On Fast DDS's default transport a message over its 512 KB shared-memory segment 
 *sending* participant's segment and loses what that participant sent just before it: with
 the map going out of solid_node's own participant, ``/tf`` and ``~/odometry`` samples were
 lost (best effort) or held up to 0.3-0.4 s until the writer repaired them (reliable; see the
-README, Transport of large clouds, and ``test/bench/bench_map_transport.py``). Sent from a
+doc/node.md, Transport of large clouds, and ``test/bench/bench_map_transport.py``). Sent from a
 second participant (a second rclpy context), the large messages fill only its segment.
 
 Its publishers take the owner node's resolved names (``~/map`` remapped as the owner's would

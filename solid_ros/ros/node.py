@@ -189,8 +189,8 @@ class SolidNode(Node):
         if key is None:
             log.warning('peers: no peer_key_file, so peer messages are not authenticated: any '
                         'participant on this ROS domain can send descriptors and clouds in '
-                        "another robot's name (fine on a trusted domain; see the README, "
-                        'Multi-robot loop closure: trust)')
+                        "another robot's name (fine on a trusted domain; see "
+                        'doc/multi_robot.md, Trust: the fleet key)')
         else:
             log.info(f'peers: messages authenticated with the fleet key in '
                      f'{cfg.peer_key_file} (key id {key_id(key)})')

@@ -1,7 +1,7 @@
 """What a peer message must pass before solid_node acts on it: authentication, replay
 protection, the allowlist, a bounded table of robots and per-robot rate limits. No ROS import.
 
-Trust model (see the README, "Multi-robot loop closure: trust"): with a fleet key
+Trust model (see doc/multi_robot.md, "Trust: the fleet key"): with a fleet key
 (``peer_key_file``) every message carries an HMAC-SHA256 tag over its topic and bytes
 (:func:`solid_ros.formats.peers.seal`), so a participant without the key can neither inject,
 alter nor move a message between topics. The envelope's stamp is strictly increasing per

@@ -285,7 +285,7 @@ class Evaluation:
         return float(self.curve.thresholds[k]), float(self.curve.recall[k]), k
 
     def metrics(self) -> dict[str, Any]:
-        """JSON-ready metrics (keys documented in the README)."""
+        """JSON-ready metrics (keys documented in doc/replay.md)."""
         pos = self.truth.has_loop
         n_pos = int(pos.sum())
         valid = self.truth.valid

@@ -30,7 +30,7 @@ from solid_ros.tools.trajectory import aligned_positions, write_trajectory
 __all__ = ['CSV_COLUMNS', 'CSV_EXTRA', 'CSV_LAYOUT', 'candidate_cells', 'write_outputs']
 
 # candidates.csv: every LoopCandidate field, with the replay's verdicts between them (the
-# README lists the columns); a field added to LoopCandidate must be placed here.
+# doc/replay.md lists the columns); a field added to LoopCandidate must be placed here.
 CSV_EXTRA = ('accepted', 'best', 'true_match', 'gt_distance_m', 'yaw_gt', 'trans_err_m',
              'rot_err_deg', 'pose_correct')
 # The evidence the judge read spans one column per field (rmse among them).
@@ -146,7 +146,7 @@ def _rows(r: ReplayResult) -> Iterator[tuple[LoopCandidate, bool, bool, LoopReco
 
 def _write_csv(path: Path, r: ReplayResult) -> None:
     """One row per candidate a keyframe looked at, plus its best descriptor match when that
-    was not looked at (see the README for the columns)."""
+    was not looked at (see doc/replay.md for the columns)."""
     loops = r.report['loops']
     limits = (loops['max_error_m'], loops['max_error_deg']) if loops is not None else None
     with path.open('w', newline='', encoding='utf-8') as fh:

@@ -47,7 +47,7 @@ def write_json(path: Path, obj: Any) -> None:
 
 def replay_report(inputs: BagInputs, log: ScanLog, scores: Scores, detector: LoopDetector,
                   options: ReplayOptions, wall_sec: float) -> dict[str, Any]:
-    """The report of one replay (``report.json``; keys documented in the README).
+    """The report of one replay (``report.json``; keys documented in doc/replay.md).
 
     Args:
         inputs: what was read from the bag.

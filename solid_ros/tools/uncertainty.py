@@ -1,6 +1,6 @@
 """Consistency of published loop covariances: the NEES of a loop against a reference pose.
 
-Convention (README, Conventions): a loop's covariance is of a right perturbation ``T exp(delta)``
+Convention (doc/conventions.md): a loop's covariance is of a right perturbation ``T exp(delta)``
 with ``delta = (x, y, z, roll, pitch, yaw)`` in the query sensor frame (ROS order; the rotation
 part a rotation vector, which small-angle roll, pitch, yaw equal). The error of a loop ``T``
 against the reference ``T_ref`` is therefore ``delta = Log(inv(T) @ T_ref)``, so that ``T_ref =

@@ -12,7 +12,7 @@ publishing from its own thread). RSS is read after the attack's last message plu
 scenarios the node has ``peers: true`` and a fleet key (``peer_key_file``) the attacker does
 not have; ``*_nokey`` variants run the same attack against a node without a key (a trusted
 domain), to show what the key is for. Both sides use config/fastdds_shm.xml (clouds over
-shared memory), as the README recommends for the node and its driver.
+shared memory), as doc/node.md recommends for the node and its driver.
 
 Printed per scenario: loops published against this robot's own keyframes and how many are
 false (pose error against optimized_poses.txt, matched by stamp, beyond 1 m or 3 deg),

@@ -18,7 +18,7 @@ Sections (``--sections``, default all):
   ``odom_heading_bias_deg_per_m`` 0.055; ``odom_check_drift`` 0.2: the presets' 0.1 of the
   path is about what 5 % drift plus the loop's own pose reach on the longest loops) for
   ``--sensors`` (hdl64 with hdl64.yaml, avia_like with avia.yaml), replayed with the drive's
-  odometry (the simulator's scans are no test of KISS-ICP: README "Odometry sources");
+  odometry (the simulator's scans are no test of KISS-ICP: doc/odometry.md);
   goal: ATE reduced >= 5x. And the 2 km serpentine that never returns (hdl64): no loop, no
   correction. Each drive again with ``backend_step_registration`` on (``--sim-steps``,
   default on): does the registered step, tuned on hku1, transfer to other sensors and scenes

@@ -5,7 +5,7 @@ on), fed its reference poses as odometry (keyframe gating only; the odometry che
 the simulated drives, whose odometry is perfect, as in ``bench_generalisation.py``). For
 every published loop the error against the reference relative pose ``T_ref = inv(P_match) @
 P_query`` is ``delta = Log(inv(T) @ T_ref)`` (ROS order, right perturbation in the query sensor
-frame, the README's convention) and its NEES ``delta^T inv(C) delta``
+frame, the convention of doc/conventions.md) and its NEES ``delta^T inv(C) delta``
 (:func:`solid_ros.tools.uncertainty.nees`): mean 6 for a covariance that matches the error, 3
 for the translation alone. Printed per data set: published loops, mean / median 6-DoF NEES,
 mean / median translation NEES, the largest NEES (and the mean without it: one loop in a

@@ -168,7 +168,7 @@ def test_kiss_icp_odometry_is_fed_to_every_robot(robots: tuple[Path, Path]) -> N
     result = replay_fleet(robots, CFG, odometry='kiss-icp')
     assert result.report['odometry_fed'] == 'kiss-icp'
     assert result.report['config']['backend_step_registration'] == 'on'  # 'auto' resolved
-    # KISS-ICP barely moves over the simulator's ringed ground (README, Odometry sources),
+    # KISS-ICP barely moves over the simulator's ringed ground (doc/odometry.md),
     # so its keyframes by distance are fewer than the bag odometry's ten.
     assert all(1 <= rb['keyframes'] < 10 for rb in result.report['robots'])
 

@@ -1,5 +1,5 @@
-"""NEES of a loop against its reference pose: the README's convention (right perturbation in the
-query frame, ROS order), chi-square statistics, sign invariance."""
+"""NEES of a loop against its reference pose: the convention of doc/conventions.md (right
+perturbation in the query frame, ROS order), chi-square statistics, sign invariance."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 gtsam (PyPI ``gtsam`` 4.3) is imported only when a back end is built (:func:`require_gtsam`),
 like small_gicp for verification, so the detector runs without it. Measurements go in as a 4x4
-``T`` and a ROS-order covariance (README "Conventions") and come back the same way:
+``T`` and a ROS-order covariance (doc/conventions.md) and come back the same way:
 :func:`to_gtsam` and :func:`from_gtsam` are each other's inverse (tested by a round trip);
 the block order is swapped by :func:`solid_ros.core.backend.noise.swap_blocks` alone.
 """

@@ -1,7 +1,7 @@
 """The map: kept keyframe clouds placed at their corrected poses, voxel-downsampled, bounded.
 
 The detector keeps each keyframe's cloud levelled (``p_level = R p_sensor``, ``R`` the mounting
-rotation, see README "Conventions"), so a point goes to the map frame as ``p_map = X R^T
+rotation, see doc/conventions.md), so a point goes to the map frame as ``p_map = X R^T
 p_level`` with ``X = T_map_sensor`` the back end's corrected pose. Clouds are merged into an
 origin-aligned voxel grid chunk by chunk (the memory stays near one chunk plus the map), and
 when the map holds more than ``max_points`` the voxel grows by half until it fits: the map

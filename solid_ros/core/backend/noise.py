@@ -1,6 +1,6 @@
 """Noise of the pose graph's factors, in numpy: odometry steps, loops, and their conventions.
 
-Conventions. A published loop's covariance (README "Conventions") is 6x6 in ROS order ``(x, y,
+Conventions. A published loop's covariance (doc/conventions.md) is 6x6 in ROS order ``(x, y,
 z, roll, pitch, yaw)`` of a right perturbation ``T exp(delta)`` in the query sensor frame. gtsam's
 ``Pose3`` uses the same right perturbation (``BetweenFactor`` and ``PriorFactor`` errors are
 ``Logmap(measured^-1 predicted)``) with the rotation first: ``(rx, ry, rz, x, y, z)``. For the

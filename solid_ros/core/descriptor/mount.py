@@ -62,7 +62,7 @@ class Mount:
         that tilts with the hand, a vertical edge crosses the voxel columns at a slant, its
         centroids zigzag off the edge, and a right alignment of two scans held at different
         tilts looks like free-space conflict (simulated room walks with 8 degrees of hand
-        tilt, see the README's Tight spaces). Open scenes keep the sensor's grid: on hku1
+        tilt, see doc/verification.md, Tight spaces). Open scenes keep the sensor's grid: on hku1
         (hand-held, pitching by 20 degrees) an upright grid gave no more loops.
         """
         if pose is None:

@@ -1,6 +1,6 @@
 """SOLiD descriptor: preprocessing, REC/AEC counts, IEV weighting, R-SOLiD and A-SOLiD.
 
-Conventions (see README): azimuth theta = atan2(y, x) in [0, 360) degrees CCW from +x,
+Conventions (see doc/conventions.md): azimuth theta = atan2(y, x) in [0, 360) degrees CCW from +x,
 horizontal range r = hypot(x, y), elevation phi = atan2(z, r). Bin indices truncate and clamp
 to the last bin; elevations outside the sensor FOV clamp to the first or last elevation bin;
 points with r >= max_distance are dropped rather than piled into the last range bin.
