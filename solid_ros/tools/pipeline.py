@@ -3,11 +3,10 @@
 :class:`ReplayPipeline` reads the clouds of one topic, asks its odometry source
 (:class:`~solid_ros.core.odometry.track.OdometrySource`: the bag's Odometry topic, or KISS-ICP
 over the clouds) for each cloud's pose and hands both to the product's
-:class:`~solid_ros.core.flow.closure.LoopClosure` (the detector and, with ``backend``, the pose
-graph: the per-scan flow solid_node runs too, split over its two threads); it yields one
-:class:`ScanRecord` per message. :meth:`ReplayPipeline.step` is the one place a scan goes
-through that chain. :class:`ScanLog` keeps what the scoring, the trajectory and the report
-need.
+:class:`~solid_ros.core.flow.closure.LoopClosure` (detector and, with ``backend``, pose graph:
+the flow solid_node runs on its two threads); it yields one :class:`ScanRecord` per message.
+:meth:`ReplayPipeline.step` is the one place a scan goes through that chain. :class:`ScanLog`
+keeps what the scoring, the trajectory and the report need.
 
 Odometry pairing: a recorded Odometry topic is a :class:`StampedOdometry` over the whole
 track, and each cloud gets the pose nearest its header stamp within ``odom_tolerance_sec``
