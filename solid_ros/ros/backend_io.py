@@ -1,5 +1,9 @@
 """The back end on solid_node: its topics, the map -> odom TF, its timers and its services.
 
+Each verified keyframe goes to the loop closure's pose graph through
+:class:`~solid_ros.ros.graph_output.GraphOutput` (the same update the replay makes); what is
+published here is read from its newest snapshot.
+
 Outputs (with ``backend`` on and odometry to build the graph from):
 
 - ``/tf``: ``map_frame -> odom_frame`` at ``tf_rate_hz``, the newest correction; identity
@@ -47,6 +51,8 @@ from std_srvs.srv import Trigger
 from solid_ros.core.backend.mapping import MapCloud, build_map
 from solid_ros.core.config import NodeConfig
 from solid_ros.core.errors import SolidError
+from solid_ros.core.flow.closure import Step
+from solid_ros.core.results import LoopCandidate
 from solid_ros.formats.pointfiles import read_pcd, write_pcd
 from solid_ros.formats.poses import (
     read_kitti_poses,
@@ -129,12 +135,13 @@ class BackendIO:
 
     # -- from the verify thread and the odometry callback ----------------------------------
 
-    def take(self, verified: Verified) -> None:
-        """A verified keyframe: into the pose graph, its loops to LIO-SAM when asked."""
+    def take(self, verified: Verified, loops: tuple[LoopCandidate, ...]) -> Step | None:
+        """A verified keyframe: its ``loops`` (header stamps) to LIO-SAM when asked, then its
+        step and graph update (see :meth:`GraphOutput.take`)."""
         if self._lio_pub is not None:
-            for c in verified.result.loops:
+            for c in loops:
                 self._lio_pub.publish(lio_sam_loop_msg(c.query_stamp_ns, c.match_stamp_ns))
-        self._output.take(verified)
+        return self._output.take(verified)
 
     def odometry(self, msg: Any, T_odom_child: npt.ArrayLike) -> None:
         """An incoming odometry message, corrected into the map frame on ``~/odometry``."""
@@ -243,10 +250,6 @@ class BackendIO:
     def values(self) -> dict[str, object]:
         """/diagnostics values of the back end."""
         return self._output.values()
-
-    def map_poses(self) -> dict[tuple[int, int], npt.NDArray[np.float64]]:
-        """Map-frame poses by ``(session, index)``, for a saved database."""
-        return self._output.map_poses()
 
     def stop(self, join_sec: float) -> None:
         """End the map thread, then the participant of the map and path."""

@@ -26,11 +26,12 @@ describes, searches and stores; a verify thread verifies keyframes and hands eac
 ``verify`` off the describe thread does that too), so the executor is never blocked by
 descriptor computation or registration.
 
-Where a keyframe's result goes: :meth:`SolidNode._hand_on` gets every verified keyframe, in
-keyframe order, as one :class:`~solid_ros.ros.stages.Verified` (its
-:class:`~solid_ros.core.results.ScanResult` and paired
-:class:`~solid_ros.core.odometry.track.OdomSample`), and publishes, logs and draws its loops. A
-consumer of the whole flow (a pose graph) takes it there too.
+The per-scan flow is the product's :class:`~solid_ros.core.flow.closure.LoopClosure`, the one
+the replay and the demo run; the node wires ROS to it. Where a keyframe's result goes:
+:meth:`SolidNode._hand_on` gets every verified keyframe, in keyframe order, as one
+:class:`~solid_ros.ros.stages.Verified` (its :class:`~solid_ros.core.results.ScanResult` and
+paired :class:`~solid_ros.core.odometry.track.OdomSample`), publishes, logs and draws its
+loops, then commits it to the loop closure's pose graph (:mod:`solid_ros.ros.backend_io`).
 """
 
 from __future__ import annotations
@@ -56,14 +57,10 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from solid_ros.core.backend.mapping import mount_rotation
-from solid_ros.core.backend.posegraph import PoseGraph
 from solid_ros.core.config import NodeConfig, SolidConfig
-from solid_ros.core.database.persistence import (
-    check_save_target,
-    read_map_poses,
-    remove_stale_temporaries,
-)
+from solid_ros.core.database.persistence import check_save_target, remove_stale_temporaries
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
+from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.stamps import join_stamp, seconds_to_ns
@@ -109,7 +106,7 @@ class SolidNode(Node):
         try:
             solid, self._node_cfg = declare_all(self)
             self._solid_cfg = solid.for_odometry(self._node_cfg.odometry_source == 'kiss_icp')
-            self._shared = SharedDetector(self._new_detector(load=True))
+            self._shared = SharedDetector(self._new_closure())
         except BaseException:
             super().destroy_node()
             raise
@@ -148,8 +145,7 @@ class SolidNode(Node):
             self._shared, self._health, self._pose_for, self._hand_on, self.get_logger(),
             queue_size=cfg.queue_size, verify=self._solid_cfg.verify,
             use_odom=self._odom is not None or self._kiss is not None,
-            share=self._peers.share if self._peers is not None else None,
-            hint=self._graph_output.hint if self._graph_output is not None else None)
+            share=self._peers.share if self._peers is not None else None)
         self._stages.start()
         self.get_logger().info(
             f'ready: database {self._shared.size} scans, FOV {self._solid_cfg.fov_width_deg} '
@@ -206,20 +202,16 @@ class SolidNode(Node):
         return peers
 
     def _start_backend(self) -> BackendIO | None:
-        """The pose graph and its outputs, when ``backend`` is on and there is odometry."""
+        """The pose graph's outputs, when the loop closure has one (``backend`` on and
+        odometry)."""
         solid, cfg = self._solid_cfg, self._node_cfg
-        self._graph_output: GraphOutput | None = None
         if not solid.backend:
             return None
-        if self._odom is None and self._kiss is None:
+        if self._shared.closure.graph is None:
             self.get_logger().info('back end off: no odometry (use_odom is false and '
                                    'odometry_source is topic); loops are still published')
             return None
-        prior = {}
-        if cfg.database_load_path:
-            prior = read_map_poses(Path(cfg.database_load_path).expanduser()).poses
-        output = self._graph_output = GraphOutput(PoseGraph(solid, prior_map=prior),
-                                                  self.get_logger())
+        output = GraphOutput(self._shared, self.get_logger(), self._stamps.headers)
         return BackendIO(self, cfg, output, self._shared, mount_rotation(solid),
                          self._odom_frame_now)
 
@@ -243,13 +235,18 @@ class SolidNode(Node):
         """The node settings in force."""
         return self._node_cfg
 
-    def _new_detector(self, *, load: bool) -> LoopDetector:
-        path = self._node_cfg.database_load_path
-        if load and path:
-            det = LoopDetector.load(path, self._solid_cfg)
-            self.get_logger().info(f'loaded database {path}')
-            return det
-        return LoopDetector(self._solid_cfg)
+    def _new_closure(self) -> LoopClosure:
+        """The loop closure: the database to load, if any; the pose graph with ``backend``
+        and odometry to build it from (KISS-ICP's, or the odometry topic's)."""
+        cfg = self._node_cfg
+        graph = self._solid_cfg.backend and (cfg.odometry_source == 'kiss_icp'
+                                             or cfg.use_odom)
+        path = cfg.database_load_path
+        if not path:
+            return LoopClosure(LoopDetector(self._solid_cfg), backend=graph)
+        closure = LoopClosure.load(path, self._solid_cfg, backend=graph)
+        self.get_logger().info(f'loaded database {path}')
+        return closure
 
     def _prepare_save_path(self) -> None:
         """Remove temporaries a killed save left; warn now when saving would be refused."""
@@ -387,23 +384,20 @@ class SolidNode(Node):
     def _hand_on(self, verified: Verified) -> None:
         """Every verified keyframe, in keyframe order, on the verify thread (the describe
         thread with ``verify`` off): the one place where each keyframe's result and paired
-        odometry go: the loops out first, then (with its registered step) the pose graph. Its
-        stamps are the clouds' header stamps again (see :mod:`~solid_ros.ros.stamp_guard`).
+        odometry go: the loops out first (with the clouds' header stamps again, see
+        :mod:`~solid_ros.ros.stamp_guard`), then the loop closure's registered step and pose
+        graph, so that the loops wait for neither.
         """
-        self._loop_output.take(self._restored(verified))
-        if self._backend is not None:
-            # The registered step only now, so that the loops do not wait for it.
-            result = self._shared.with_step(verified.result, verified.proposal,
-                                            verified.detector)
-            if math.isfinite(result.times.step):  # registered steps are on
-                self._stages.timings.add('step', result.times.step)
-            self._backend.take(self._restored(dataclasses.replace(verified, result=result)))
-
-    def _restored(self, verified: Verified) -> Verified:
-        if not self._stamps.shifted:
-            return verified
-        return dataclasses.replace(verified, result=self._stamps.restore(
-            verified.result, self._solid_cfg.session_id))
+        restored = verified
+        if self._stamps.shifted:
+            restored = dataclasses.replace(verified, result=self._stamps.restore(
+                verified.result, self._solid_cfg.session_id))
+        self._loop_output.take(restored)
+        if self._backend is None:
+            return
+        step = self._backend.take(verified, restored.result.loops)
+        if step is not None and math.isfinite(step.scan.times.step):  # registered steps on
+            self._stages.timings.add('step', step.scan.times.step)
 
     # -- services and diagnostics -----------------------------------------------------------
 
@@ -413,8 +407,7 @@ class SolidNode(Node):
             response.success, response.message = False, 'database_save_path is empty'
             return response
         try:
-            poses = self._backend.map_poses() if self._backend is not None else None
-            size, backup = self._shared.save(path, poses)
+            size, backup = self._shared.save(path)
         except (SolidError, OSError) as err:
             response.success, response.message = False, f'save failed: {err}'
             self.get_logger().error(response.message)
@@ -430,7 +423,7 @@ class SolidNode(Node):
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Any:
         self._stages.clear()
-        self._shared.replace(self._new_detector(load=False))
+        self._shared.reset(LoopDetector(self._solid_cfg))
         if self._markers is not None:
             self._markers.clear()
         if self._backend is not None:

@@ -1,9 +1,12 @@
-"""The loop detector that solid_node's two threads share, each stage under its own lock.
+"""The loop closure that solid_node's two threads share, each stage under its own lock.
 
-Stage 1 (describe, search, store) and stage 2 (verify) each hold their lock while they use the
-detector, so one keyframe is described while the one before it is verified; saving, resetting
-and reconfiguring take both. Peer robots' keyframes are stored under the stage-1 lock, like
-this robot's descriptors. No ROS import: the node and its tests hand it plain values.
+The node runs the product's per-scan flow, :class:`~solid_ros.core.flow.closure.LoopClosure`,
+on two threads: stage 1 (:meth:`SharedDetector.propose`: describe, search, store) and stage 2
+(:meth:`SharedDetector.verify`, then :meth:`SharedDetector.commit`: the registered step and
+the pose graph) each hold their lock while they use it, so one keyframe is described while the
+one before it is verified; saving, resetting and reconfiguring take both. The pose graph and
+its hint are stage 2's. Peer robots' keyframes are stored under the stage-1 lock, like this
+robot's descriptors. No ROS import: the node and its tests hand it plain values.
 
 No lock is ever held across a network wait: the clouds of peers' keyframes a proposal needs
 are fetched before stage 2 takes its lock (:meth:`SharedDetector.fetch_clouds`); the detector
@@ -21,12 +24,13 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.backend.mapping import keyframe_clouds
-from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Proposal
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.database.persistence import backup_if_shrinking
+from solid_ros.core.flow.closure import LoopClosure, Step
 from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.reasons import Reason
 from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.formats.peers import DescriptorMessage
@@ -48,23 +52,29 @@ class CloudSource(Protocol):
 
 
 class SharedDetector:
-    """A :class:`LoopDetector` behind the two stage locks.
+    """A :class:`~solid_ros.core.flow.closure.LoopClosure` behind the two stage locks.
 
     Args:
-        detector: the detector to start with.
+        closure: the loop closure (its detector and, with the back end, its pose graph).
     """
 
-    def __init__(self, detector: LoopDetector) -> None:
-        self._detector = detector
-        self._loaded = self._loaded_sessions(detector)
+    def __init__(self, closure: LoopClosure) -> None:
+        self._closure = closure
+        self._detector = closure.detector
+        self._loaded = self._loaded_sessions(self._detector)
         self._source: CloudSource | None = None
         self._fetched: dict[tuple[int, int, int], KeyframeCloud | Reason] = {}
         self._describe_lock = threading.Lock()
         self._verify_lock = threading.Lock()
 
     @property
+    def closure(self) -> LoopClosure:
+        """The loop closure (read its graph only under the stage-2 lock, or for counters)."""
+        return self._closure
+
+    @property
     def detector(self) -> LoopDetector:
-        """The detector now (another one after :meth:`replace`)."""
+        """The detector now (another one after :meth:`reset`)."""
         return self._detector
 
     @property
@@ -85,10 +95,11 @@ class SharedDetector:
 
     # -- the two stages ----------------------------------------------------------------------
 
-    def propose(self, points: npt.ArrayLike, stamp_ns: int, pose: Any) -> Proposal | None:
-        """Stage 1: :meth:`LoopDetector.propose` under the stage-1 lock."""
+    def propose(self, points: npt.ArrayLike, stamp_ns: int,
+                odom: OdomSample | None) -> Proposal | None:
+        """Stage 1: :meth:`LoopClosure.propose` under the stage-1 lock."""
         with self._describe_lock:
-            return self._detector.propose(points, stamp_ns, pose=pose)
+            return self._closure.propose(points, stamp_ns, odom)
 
     def fetch_clouds(self, proposal: Proposal) -> dict[tuple[int, int, int],
                                                         KeyframeCloud | Reason]:
@@ -113,29 +124,32 @@ class SharedDetector:
             out.update((key, source.collect(ticket)) for key, ticket in batch)
         return out
 
-    def verify(self, proposal: Proposal,
-               hint: GraphHint | None = None) -> tuple[ScanResult, LoopDetector]:
+    def verify(self, proposal: Proposal) -> tuple[ScanResult, LoopDetector]:
         """Stage 2: fetch the proposal's peer clouds (:meth:`fetch_clouds`) without a lock,
-        then :meth:`LoopDetector.verify` (with the pose graph's ``hint``, without the
-        registered step: :meth:`with_step`) under the stage-2 lock; also returns the detector
-        that verified (a reset may replace it right after)."""
+        then :meth:`LoopClosure.verify` (with the pose graph's hint) under the stage-2 lock;
+        also returns the detector that verified (a reset may replace it right after)."""
         fetched = self.fetch_clouds(proposal)
         with self._verify_lock:
             detector = self._detector
             self._fetched = fetched
             try:
-                return detector.verify(proposal, hint, step=False), detector
+                return self._closure.verify(proposal), detector
             finally:
                 self._fetched = {}
 
-    def with_step(self, result: ScanResult, proposal: Proposal,
-                  detector: LoopDetector) -> ScanResult:
-        """:meth:`LoopDetector.with_step` under the stage-2 lock, after the loops of
-        :meth:`verify` went out; ``result`` unchanged when a reset replaced ``detector``."""
+    def commit(self, proposal: Proposal, result: ScanResult, odom: OdomSample | None,
+               detector: LoopDetector) -> Step | None:
+        """The rest of stage 2 after the loops of :meth:`verify` went out:
+        :meth:`LoopClosure.commit` (registered step, pose graph) under the stage-2 lock; None
+        when a reset replaced ``detector`` since it verified (nothing changed).
+
+        Raises:
+            BackendError: see :meth:`LoopClosure.commit`.
+        """
         with self._verify_lock:
             if detector is not self._detector:
-                return result
-            return detector.with_step(result, proposal)
+                return None
+            return self._closure.commit(proposal, result, odom)
 
     def _collected(self, robot: int, index: int, stamp_ns: int) -> KeyframeCloud | Reason:
         """The detector's ``fetch_cloud``: only what was fetched before the lock (a cloud
@@ -167,20 +181,21 @@ class SharedDetector:
         with self._describe_lock, self._verify_lock:
             self._detector.reconfigure(config)
 
-    def replace(self, detector: LoopDetector) -> None:
-        """Continue with ``detector`` (``~/reset``); it fetches peer clouds as before."""
+    def reset(self, detector: LoopDetector) -> None:
+        """Continue with ``detector`` and an empty pose graph (``~/reset``;
+        :meth:`LoopClosure.reset`); it fetches peer clouds as before."""
         with self._describe_lock, self._verify_lock:
             if self._source is not None:
                 detector.fetch_cloud = self._collected
             self._loaded = self._loaded_sessions(detector)
+            self._closure.reset(detector)
             self._detector = detector
 
-    def save(self, path: str, map_poses: dict[tuple[int, int], FloatArray] | None = None
-             ) -> tuple[int, Path | None]:
+    def save(self, path: str) -> tuple[int, Path | None]:
         """Save the database to ``path`` (its folder made; the core writes a temporary file
-        and renames it over ``path``), with the back end's map-frame poses when given; return
-        the scans saved and, when the save would have replaced a database with an empty or
-        much smaller one, the backup kept of it
+        and renames it over ``path``) with the back end's map-frame poses
+        (:meth:`LoopClosure.save`); return the scans saved and, when the save would have
+        replaced a database with an empty or much smaller one, the backup kept of it
         (:func:`~solid_ros.core.database.persistence.backup_if_shrinking`).
 
         Raises:
@@ -191,7 +206,7 @@ class SharedDetector:
             size = self.size
             target.parent.mkdir(parents=True, exist_ok=True)
             backup = backup_if_shrinking(target, size)
-            self._detector.save(target, map_poses or None)
+            self._closure.save(target)
         return size, backup
 
     # -- peer robots (see solid_ros.ros.peers) -----------------------------------------------

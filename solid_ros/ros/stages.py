@@ -1,8 +1,11 @@
 """The flow of one scan through solid_node: a describe thread, then a verify thread.
 
-Stage 1 (describe thread) pairs the cloud with odometry, describes it, searches and stores;
-stage 2 (verify thread) verifies each keyframe's candidates in keyframe order and hands the
-result on as one :class:`Verified`. With ``verify`` off stage 1 hands on itself: what is left
+The threads run the product's loop closure (:class:`~solid_ros.core.flow.closure.LoopClosure`,
+through :class:`~solid_ros.ros.shared_detector.SharedDetector`): stage 1 (describe thread)
+pairs the cloud with odometry and proposes it (describe, search, store); stage 2 (verify
+thread) verifies each keyframe's candidates in keyframe order, with the pose graph's hint, and
+hands the result on as one :class:`Verified`, whose receiver publishes its loops and then
+commits it to the back end. With ``verify`` off stage 1 hands on itself: what is left
 takes well under a millisecond, less than waking the other thread. Each stage is a
 :class:`~solid_ros.ros.worker.Worker` with a bounded keep-newest queue; drops and failures are
 counted by :class:`~solid_ros.ros.health.InputHealth` and logged, and the stages go on. No
@@ -20,7 +23,6 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Proposal
 from solid_ros.core.errors import CloudError
 from solid_ros.core.flow.detector import LoopDetector
@@ -83,20 +85,16 @@ class Stages:
         verify: whether the detector verifies (read-only while running).
         use_odom: whether a cloud without odometry counts as such.
         share: sends each keyframe's descriptor to peer robots, if any.
-        hint: the pose graph after the keyframes verified so far (read on the verify thread
-            before each keyframe, for the detector's candidates by position), if any.
     """
 
     def __init__(self, shared: SharedDetector, health: InputHealth,
                  pair: Callable[[int, npt.NDArray[np.floating[Any]]], OdomSample | None],
                  hand_on: Callable[[Verified], None],
                  log: Log, *, queue_size: int, verify: bool, use_odom: bool,
-                 share: Callable[[Proposal], None] | None = None,
-                 hint: Callable[[], GraphHint | None] | None = None) -> None:
+                 share: Callable[[Proposal], None] | None = None) -> None:
         self.timings = StageTimings()
         self._shared, self._health, self._log = shared, health, log
         self._pair, self._hand_on, self._share = pair, hand_on, share
-        self._hint = hint
         self._verify, self._use_odom = verify, use_odom
         self._describe_worker: Worker[Cloud] = Worker(
             'solid_describe', self._describe_stage, queue_size, self._describe_failed)
@@ -158,7 +156,7 @@ class Stages:
         points, stamp_ns = cloud
         t0 = time.perf_counter()
         odom = self._pair(stamp_ns, points)
-        proposal = self._shared.propose(points, stamp_ns, None if odom is None else odom.pose)
+        proposal = self._shared.propose(points, stamp_ns, odom)
         self.timings.add_total((time.perf_counter() - t0) * 1e3)
         stats = self._health.stats
         stats.processed += 1
@@ -200,9 +198,8 @@ class Stages:
                 self._log.error(f'verification needs {module}: {err} (pip install small-gicp)')
 
     def _verify_stage(self, keyframe: _Keyframe) -> None:
-        # The graph after the previous keyframe: its hand_on ran on this thread.
-        hint = self._hint() if self._hint is not None else None
-        result, detector = self._shared.verify(keyframe.proposal, hint)
+        # With the graph after the previous keyframe: its hand_on committed it on this thread.
+        result, detector = self._shared.verify(keyframe.proposal)
         self.timings.add('verify', result.times.verify)
         self._hand_on(Verified(result, keyframe.odom, keyframe.proposal, detector))
 

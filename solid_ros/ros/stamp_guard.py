@@ -15,8 +15,9 @@ subscription callback) and gives the detector a stamp that always increases:
 An untrusted cloud is paired with the odometry that was newest when it arrived (``hint`` of
 :meth:`StampGuard.take`), instead of the odometry of its stamp.
 Published loops carry the header stamps again (:meth:`StampGuard.restore`), so a back end
-finds its keyframes; a saved database keeps the detector's stamps. Each switch of the offset
-is remembered (the newest ``MAX_SEGMENTS``) to translate back.
+finds its keyframes, and so do the corrected path and trajectory (:meth:`StampGuard.headers`);
+a saved database and the node's own pose graph keep the detector's stamps. Each switch of the
+offset is remembered (the newest ``MAX_SEGMENTS``) to translate back.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
+import numpy.typing as npt
 
 from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.core.stamps import NS_PER_SEC
@@ -115,6 +119,19 @@ class StampGuard:
                 return stamp_ns, True
             untrusted = self._untrusted[k] and self._starts[k] == stamp_ns
             return stamp_ns - self._offsets[k], not untrusted
+
+    def headers(self, stamps_ns: npt.ArrayLike) -> npt.NDArray[np.int64]:
+        """The header stamps of the clouds the detector saw at ``stamps_ns``
+        (:meth:`source` of many)."""
+        stamps = np.array(stamps_ns, dtype=np.int64)
+        if not self.shifted:
+            return stamps
+        with self._lock:
+            starts = np.array(self._starts, dtype=np.int64)
+            offsets = np.array(self._offsets, dtype=np.int64)
+        k = np.searchsorted(starts, stamps, side='right') - 1
+        shift: npt.NDArray[np.int64] = np.where(k >= 0, offsets[np.maximum(k, 0)], 0)
+        return stamps - shift
 
     @property
     def shifted(self) -> bool:

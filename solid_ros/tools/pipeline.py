@@ -1,20 +1,20 @@
 """The replay's scan loop: bag -> odometry source -> loop closure, one record per cloud.
 
 :class:`ReplayPipeline` reads the clouds of one topic, asks its odometry source
-(:class:`~solid_ros.core.odometry.track.OdometrySource`: the bag's Odometry topic, or KISS-ICP over
-the clouds) for each cloud's pose and hands both to the product's
-:class:`~solid_ros.core.flow.closure.LoopClosure` (the detector and, with ``backend``, the pose
-graph); it yields one :class:`ScanRecord` per message. :meth:`ReplayPipeline.step` is the one
-place a scan goes through that chain. :class:`ScanLog` keeps what the scoring, the trajectory
-and the report need.
+(:class:`~solid_ros.core.odometry.track.OdometrySource`: the bag's Odometry topic, or KISS-ICP
+over the clouds) for each cloud's pose and hands both to the product's
+:class:`~solid_ros.core.flow.closure.LoopClosure` (detector and, with ``backend``, pose graph:
+the flow solid_node runs on its two threads); it yields one :class:`ScanRecord` per message.
+:meth:`ReplayPipeline.step` is the one place a scan goes through that chain. :class:`ScanLog`
+keeps what the scoring, the trajectory and the report need.
 
 Odometry pairing: a recorded Odometry topic is a :class:`StampedOdometry` over the whole
 track, and each cloud gets the pose nearest its header stamp within ``odom_tolerance_sec``
-(:func:`~solid_ros.core.odometry.track.nearest_stamp`, ties to the earlier). The node applies the
-same
-nearest-within-tolerance rule to the odometry received so far (its newest 512 messages),
-waiting at most 0.25 s for one at or past the cloud's stamp; the two pair alike when the
-odometry reaches the node within that wait, and only the replay pairs odometry that comes later.
+(:func:`~solid_ros.core.odometry.track.nearest_stamp`, ties to the earlier). The node applies
+the same nearest-within-tolerance rule to the odometry received so far (its newest 512
+messages), waiting at most 0.25 s for one at or past the cloud's stamp; the two pair alike when
+the odometry reaches the node within that wait, and only the replay pairs odometry that comes
+later.
 """
 
 from __future__ import annotations

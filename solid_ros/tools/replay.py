@@ -12,11 +12,12 @@ record per scan; :mod:`~solid_ros.tools.scoring`, :mod:`~solid_ros.tools.reports
 :mod:`~solid_ros.tools.outputs` score, report and write it. Several bags are a fleet
 (:mod:`solid_ros.tools.fleet`).
 
-The scans go through the product's :class:`~solid_ros.core.flow.closure.LoopClosure`: the detector
-and, with ``backend: true``, the pose graph, whose corrected keyframe poses are written as
-``trajectory.tum`` / ``trajectory.kitti`` (:mod:`solid_ros.tools.trajectory`) and scored
-(ATE, RPE) beside the odometry's. The odometry is the bag's Odometry topic or KISS-ICP over the
-clouds (``--odometry kiss-icp``).
+The scans go through the product's :class:`~solid_ros.core.flow.closure.LoopClosure`, the
+per-scan flow the node runs on its two threads: the detector and, with ``backend: true``, the
+pose graph (whose hint the next keyframe is verified with), whose corrected keyframe poses are
+written as ``trajectory.tum`` / ``trajectory.kitti`` (:mod:`solid_ros.tools.trajectory`) and
+scored (ATE, RPE) beside the odometry's. The odometry is the bag's Odometry topic or KISS-ICP
+over the clouds (``--odometry kiss-icp``).
 
 Usage: ``solid_replay BAG [--params FILE.yaml] [--set KEY=VALUE ...] [--topic /points]
 [--odometry bag|kiss-icp] [--odom-topic T | --poses FILE [--times FILE]] [--out DIR [--map]]

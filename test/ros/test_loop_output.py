@@ -11,6 +11,7 @@ pytest.importorskip('std_msgs', reason='ROS 2 message packages are not installed
 
 from test_stages import LOOP_EVERY_SCAN, Log, scene  # noqa: E402
 
+from solid_ros.core.flow.closure import LoopClosure  # noqa: E402
 from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 from solid_ros.core.odometry.track import OdomSample  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
@@ -30,7 +31,7 @@ def at(x: float, stamp: int) -> OdomSample:
 
 
 def test_publishes_logs_and_draws_each_loop() -> None:
-    shared = SharedDetector(LoopDetector(LOOP_EVERY_SCAN.replace(verify=False)))
+    shared = SharedDetector(LoopClosure(LoopDetector(LOOP_EVERY_SCAN.replace(verify=False))))
     sent: list[Any] = []
     drawn: list[Any] = []
     markers = LoopMarkers(10, drawn.append, lambda: 'odom', lambda: None)
@@ -40,7 +41,7 @@ def test_publishes_logs_and_draws_each_loop() -> None:
     pts = scene()
     for i in range(3):
         stamp = (i + 1) * SEC
-        proposal = shared.propose(pts, stamp, at(float(i), stamp).pose)
+        proposal = shared.propose(pts, stamp, at(float(i), stamp))
         assert proposal is not None
         result, detector = shared.verify(proposal)
         odom = at(float(i), stamp) if i != 1 else None  # no odometry: no edge

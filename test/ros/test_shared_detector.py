@@ -12,6 +12,7 @@ import numpy as np
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.descriptor.solid import describe
+from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.ros.shared_detector import IN_FLIGHT, SharedDetector
 
@@ -47,7 +48,7 @@ def scene(seed: int) -> np.ndarray:
 
 
 def test_saving_and_serving_never_wait_for_a_peer(tmp_path: Path) -> None:
-    shared = SharedDetector(LoopDetector(CFG))
+    shared = SharedDetector(LoopClosure(LoopDetector(CFG)))
     peer = SlowPeer()
     shared.set_cloud_source(peer)
     pts = scene(1)

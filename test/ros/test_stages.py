@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import pytest
 
-from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.ros.health import InputHealth
@@ -42,9 +44,19 @@ def scene(seed: int = 3) -> np.ndarray:
     return pts[np.hypot(pts[:, 0], pts[:, 1]) > 4.0]
 
 
+def every_other(stamp_ns: int, points: object) -> OdomSample | None:
+    """Odometry for even stamps (in seconds), at x = the stamp in seconds."""
+    pose = np.eye(4)
+    pose[0, 3] = stamp_ns / SEC
+    return OdomSample(stamp_ns, pose) if stamp_ns % (2 * SEC) == 0 else None
+
+
 def run(config: SolidConfig, clouds: list[tuple[np.ndarray, int]], use_odom: bool = True,
-        hint: Any = None) -> tuple[list[Verified], InputHealth, Log, list[str]]:
-    shared = SharedDetector(LoopDetector(config))
+        pair: Callable[[int, Any], OdomSample | None] = every_other, commit: bool = False
+        ) -> tuple[list[Verified], InputHealth, Log, list[str]]:
+    """The stages over ``clouds``; with ``commit`` each keyframe is committed to the loop
+    closure's back end after it is handed on, as the node does."""
+    shared = SharedDetector(LoopClosure(LoopDetector(config)))
     health = InputHealth('/points', '/odom' if use_odom else None, 'reliable', 0.05,
                          lambda topic: 0)
     log = Log()
@@ -54,14 +66,11 @@ def run(config: SolidConfig, clouds: list[tuple[np.ndarray, int]], use_odom: boo
     def hand_on(v: Verified) -> None:
         threads.append(threading.current_thread().name)
         out.append(v)
-
-    def pair(stamp_ns: int, points: object) -> OdomSample | None:
-        pose = np.eye(4)
-        pose[0, 3] = stamp_ns / SEC
-        return OdomSample(stamp_ns, pose) if stamp_ns % (2 * SEC) == 0 else None
+        if commit:
+            shared.commit(v.proposal, v.result, v.odom, v.detector)
 
     stages = Stages(shared, health, pair, hand_on, log, queue_size=100, verify=config.verify,
-                    use_odom=use_odom, hint=hint)
+                    use_odom=use_odom)
     stages.start()
     try:
         for cloud in clouds:
@@ -108,38 +117,32 @@ def test_the_same_loops_as_the_detector_alone() -> None:
     assert set(threads) == {'solid_verify'}
 
 
-def test_the_verify_thread_reads_the_graph_hint_before_each_keyframe() -> None:
-    # Keyframe 3 lies where the graph puts keyframe 0; the descriptor proposes nothing
-    # (distance_threshold 0), so the one loop is the graph's candidate.
-    pts = scene(11)
-    clouds = [(pts + [40.0 * i, 0.0, 0.0] if i in (1, 2) else pts, 2 * (i + 1) * SEC)
-              for i in range(4)]
-    poses = np.array([np.eye(4)] * 3)
-    for i in range(3):
-        poses[i, 0, 3] = 2.0 * (i + 1)  # the pair() above: x = stamp in seconds
-    hint = GraphHint.of([0, 1, 2], [c[1] for c in clouds[:3]], poses, poses,
-                        _shift(-6.0))  # the odometry drifted 6 m
-    calls: list[str] = []
+def test_the_verify_thread_verifies_with_the_graph_after_the_previous_keyframe() -> None:
+    # A drifting drive whose last scan revisits the first; the descriptor proposes nothing
+    # (distance_threshold 0), so its one loop is the graph's candidate, as in the loop
+    # closure run scan by scan.
+    pytest.importorskip('gtsam', reason='gtsam is not installed')
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    from solid_ros.sim.drive import Drive, DriveConfig
 
-    def read() -> GraphHint:
-        calls.append(threading.current_thread().name)
-        return hint
-
-    cfg = LOOP_EVERY_SCAN.replace(distance_threshold=0.0, graph_candidates=2,
-                                  graph_candidate_min_path_m=0.0, exclude_recent_frames=1)
-    out, _, _, _ = run(cfg, clouds, hint=read)
-    assert set(calls) == {'solid_verify'} and len(calls) == 4
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
+    scans = [5, 40, 80, 120, 273]  # scan 273 revisits scan 5
+    cfg = SolidConfig(verify_voxel_size=0.5, verify_coarse_voxel_size=1.5,
+                      exclude_recent_frames=2, distance_threshold=0.0, num_candidates=3,
+                      backend=True, backend_segment_jump_m=1000.0)
+    clouds = [(drive.scan(i).points, (k + 1) * SEC) for k, i in enumerate(scans)]
+    odom = {(k + 1) * SEC: OdomSample((k + 1) * SEC, drive.odometry(i))
+            for k, i in enumerate(scans)}
+    out, _, _, threads = run(cfg, clouds, pair=lambda stamp, _: odom[stamp], commit=True)
     loops = [c for v in out for c in v.result.loops]
-    assert [(c.query_index, c.match_index, c.source) for c in loops] == [(3, 0, 'graph')]
-    # Without the hint, nothing.
-    out, _, _, _ = run(cfg, clouds)
+    assert [(c.query_index, c.match_index, c.source) for c in loops] == [(4, 0, 'graph')]
+    assert set(threads) == {'solid_verify'}
+    alone = LoopClosure(LoopDetector(cfg))
+    want = [alone.process(pts, stamp, odom[stamp]).scan.loops for pts, stamp in clouds]
+    assert [v.result.loops for v in out] == want
+    # Without the commits there is no graph, so no hint and no loop.
+    out, _, _, _ = run(cfg, clouds, pair=lambda stamp, _: odom[stamp])
     assert [c for v in out for c in v.result.loops] == []
-
-
-def _shift(x: float) -> np.ndarray:
-    T = np.eye(4)
-    T[0, 3] = x
-    return T
 
 
 def test_unusable_clouds_are_rejected_and_failures_counted_the_stages_go_on() -> None:

@@ -119,3 +119,15 @@ def test_a_clock_jumping_back_no_longer_hides_the_end_of_run_loop() -> None:
     last = found[-1]
     assert [(c.query_index, c.match_index) for c in last] == [(35, 0)]
     assert (last[0].query_stamp_ns, last[0].match_stamp_ns) == (114 * SEC, 300 * SEC)
+
+
+def test_header_stamps_of_many_detector_stamps_at_once() -> None:
+    # What the corrected path and trajectory are stamped with: source() of each.
+    clock = Clock()
+    guard = StampGuard(clock)
+    assert guard.headers([3, 4]).tolist() == [3, 4]  # nothing shifted yet
+    headers = [5 * SEC, 6 * SEC, 0, 0, 3 * SEC, 7 * SEC, 7 * SEC, 8 * SEC]
+    got = [s for s, _ in feed(guard, clock, headers)]
+    assert guard.shifted
+    assert guard.headers(got).tolist() == [guard.source(s)[0] for s in got] == headers
+    assert guard.headers(np.zeros(0, dtype=np.int64)).tolist() == []

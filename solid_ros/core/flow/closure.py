@@ -1,17 +1,32 @@
-"""The per-scan flow of the product: odometry -> loop detector -> pose graph, one call per scan.
+"""The per-scan flow of the product: odometry -> loop detector -> pose graph.
 
-:meth:`LoopClosure.process` pairs the cloud with a pose (the caller's sample, or the odometry
-source's, e.g. KISS-ICP), runs the detector and, for a kept keyframe with the back end on,
-updates the pose graph; it returns one :class:`Step` that the replay, the demo and the node
-consume alike. The node runs the same work on two threads: the detector's
-:meth:`~solid_ros.core.flow.detector.LoopDetector.propose` on one, then :meth:`LoopClosure.finish`
-(verification and the back end) on the other.
+One flow for the replay, the demo and the node; the node only wires ROS to it. A scan goes
+through three calls, in scan order:
 
-With the back end and ``graph_candidates`` on, each keyframe is verified with the graph as it
-stood after the previous keyframe (a :class:`~solid_ros.core.candidates.position.GraphHint`): the
-keyframes near it in the corrected estimate become candidates too, and the graph's relative
-poses seed their registration. The node hands the verify thread the same hint from its graph
-snapshot, taken after the previous keyframe on that thread, so both verify alike.
+- :meth:`LoopClosure.propose`: the detector's descriptor stage (gate, describe, search, store);
+  None for a gated-out scan.
+- :meth:`LoopClosure.verify`: the detector's verification of a proposal with the graph as it
+  stood after the previous keyframe; its loops are final here.
+- :meth:`LoopClosure.commit`: with the back end, the keyframe registered to the previous one
+  (``backend_step_registration``) and the pose-graph update, which makes the hint the next
+  keyframe is verified with.
+
+:meth:`LoopClosure.finish` is ``commit(verify(...))`` and :meth:`LoopClosure.process` is
+``finish(propose(...))`` after pairing the cloud with a pose (the caller's sample, or the
+odometry source's, e.g. KISS-ICP); each returns one :class:`Step`. The replay and the demo
+call :meth:`~LoopClosure.process`. The node (:mod:`solid_ros.ros.stages`) calls
+:meth:`~LoopClosure.propose` on its describe thread under its stage-1 lock, and
+:meth:`~LoopClosure.verify` and :meth:`~LoopClosure.commit` on its verify thread under its
+stage-2 lock, publishing the loops between the two so that they never wait for the step or
+the graph; reset, save and reconfigure take both locks. Nothing here locks: stage 1 touches
+only the detector's descriptor side, stage 2 its verification side, the hint and the graph.
+
+The graph hint (:class:`~solid_ros.core.candidates.position.GraphHint`), built here and only
+here from the graph's keyframes after each keyframe it added: with ``verify`` and
+``graph_candidates`` on, the keyframes near the next one in the corrected estimate become
+candidates too and the graph's relative poses seed their registration (the detector ignores
+it otherwise). It is also the :attr:`Step.estimate` the node publishes its path and map -> odom
+transform from.
 
 A saved database loaded with :meth:`LoopClosure.load` brings its scans (searched and verified
 against) and, with the back end on, its keyframes' map-frame poses as the fixed prior map the
@@ -32,8 +47,10 @@ from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Proposal
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.flow.detector import LoopDetector
+from solid_ros.core.geometry import pose_to_vector
 from solid_ros.core.odometry.track import OdometrySource, OdomSample
 from solid_ros.core.results import ScanResult
+from solid_ros.core.stamps import check_stamp
 
 if TYPE_CHECKING:
     from solid_ros.core.backend.posegraph import PoseGraph
@@ -49,35 +66,40 @@ class Step:
     """What one scan gave.
 
     Attributes:
-        scan: the detector's result (keyframe, loops, attempts, stage times).
+        scan: the detector's result (keyframe, loops, attempts, registered step, stage times).
         odom: the odometry sample the scan was paired with (None: no pose).
-        backend: the pose graph after the keyframe (None: back end off or not a keyframe).
+        backend: the pose graph's update (None: back end off or not a keyframe).
+        estimate: the graph after this keyframe, the hint the next one is verified with
+            (None: the graph did not add it).
     """
 
     scan: ScanResult
     odom: OdomSample | None
-    backend: BackendState | None
+    backend: BackendState | None = None
+    estimate: GraphHint | None = None
 
 
 class LoopClosure:
-    """Loop detector and, with ``config.backend``, the pose graph behind it.
+    """Loop detector and, with the back end, the pose graph behind it.
 
     Args:
-        detector: the loop detector (its configuration is the pipeline's).
-        odometry: where poses come from when :meth:`process` is not given one (None: scans
+        detector: the loop detector (its configuration is the flow's).
+        odometry: where :meth:`process` gets a pose when it is not given one (None: scans
             without a sample have no pose).
-        graph: the pose graph; built from the detector's configuration when omitted and
-            ``backend`` is on.
+        graph: the pose graph; built from the detector's configuration when omitted and the
+            back end is on.
+        backend: whether the back end is on (default: the configuration's ``backend``); the
+            node turns it off when it has no odometry to build the graph from.
 
     Raises:
         BackendError: the back end is on and gtsam is missing.
     """
 
     def __init__(self, detector: LoopDetector, odometry: OdometrySource | None = None,
-                 graph: PoseGraph | None = None) -> None:
+                 graph: PoseGraph | None = None, *, backend: bool | None = None) -> None:
         self.detector = detector
         self.odometry = odometry
-        if graph is None and detector.config.backend:
+        if graph is None and (detector.config.backend if backend is None else backend):
             from solid_ros.core.backend.posegraph import PoseGraph
 
             graph = PoseGraph(detector.config)
@@ -86,7 +108,8 @@ class LoopClosure:
 
     @classmethod
     def load(cls, path: str | Path, config: SolidConfig,
-             odometry: OdometrySource | None = None) -> LoopClosure:
+             odometry: OdometrySource | None = None, *,
+             backend: bool | None = None) -> LoopClosure:
         """A session that searches the scans saved in ``path`` and, with the back end on,
         relocalises in their map-frame poses.
 
@@ -95,21 +118,28 @@ class LoopClosure:
         """
         detector = LoopDetector.load(path, config)
         graph = None
-        if config.backend:
+        if config.backend if backend is None else backend:
             from solid_ros.core.backend.posegraph import PoseGraph
             from solid_ros.core.database.persistence import read_map_poses
 
             graph = PoseGraph(config, prior_map=read_map_poses(path).poses)
-        return cls(detector, odometry, graph)
+        return cls(detector, odometry, graph, backend=graph is not None)
 
     @property
     def config(self) -> SolidConfig:
         """The settings in force."""
         return self.detector.config
 
+    @property
+    def hint(self) -> GraphHint | None:
+        """The graph's estimate the next keyframe is verified with (None: none)."""
+        return self._hint
+
+    # -- per scan ----------------------------------------------------------------------------
+
     def process(self, points: npt.ArrayLike, stamp_ns: int,
                 odom: OdomSample | None = None) -> Step:
-        """Pair, detect and (for a keyframe) update the pose graph.
+        """Pair, then :meth:`finish` what :meth:`propose` kept.
 
         Args:
             points: (N, 3+) cloud in the sensor frame.
@@ -122,30 +152,52 @@ class LoopClosure:
         """
         if odom is None and self.odometry is not None:
             odom = self.odometry.pose_for(stamp_ns, np.asarray(points))
-        scan = self.detector.process(points, stamp_ns, None if odom is None else odom.pose,
-                                     self._hint)
-        return Step(scan, odom, self._update(scan, odom))
+        proposal = self.propose(points, stamp_ns, odom)
+        if proposal is None:  # gated out: what the detector's process() gives
+            vec = None if odom is None else pose_to_vector(odom.pose)
+            return Step(ScanResult(check_stamp(stamp_ns), pose=vec), odom)
+        return self.finish(proposal, odom)
+
+    def propose(self, points: npt.ArrayLike, stamp_ns: int,
+                odom: OdomSample | None = None) -> Proposal | None:
+        """Stage 1: :meth:`LoopDetector.propose` with the sample's pose (None: gated out).
+
+        Raises:
+            CloudError: no usable point (nothing changed).
+            SolidError: malformed points, pose or stamp.
+        """
+        return self.detector.propose(points, stamp_ns, None if odom is None else odom.pose)
 
     def finish(self, proposal: Proposal, odom: OdomSample | None) -> Step:
-        """The second half of :meth:`process` for a proposal of the detector's
-        :meth:`~LoopDetector.propose`: verify it and update the pose graph (keyframe order)."""
-        scan = self.detector.verify(proposal, self._hint)
-        return Step(scan, odom, self._update(scan, odom))
+        """Stage 2 in one call: :meth:`commit` what :meth:`verify` gave."""
+        return self.commit(proposal, self.verify(proposal), odom)
 
-    @property
-    def hint(self) -> GraphHint | None:
-        """The graph's estimate the next keyframe is verified with (None: none)."""
-        return self._hint
+    def verify(self, proposal: Proposal) -> ScanResult:
+        """The proposal verified with the graph's hint (keyframe order); its loops are
+        final, its registered step not yet made (:meth:`commit`)."""
+        return self.detector.verify(proposal, self._hint, step=False)
 
-    def _update(self, scan: ScanResult, odom: OdomSample | None) -> BackendState | None:
-        if self.graph is None or not scan.keyframe:
-            return None
-        state = self.graph.update(scan, odom)
-        if state.added and self.config.graph_candidates > 0 and self.config.verify:
-            self._hint = GraphHint.from_keyframes(
-                self.graph.keyframes(), state.correction, state.covariance,
-                partial(self.graph.relative_covariance, index_b=state.index))
-        return state
+    def commit(self, proposal: Proposal, result: ScanResult,
+               odom: OdomSample | None) -> Step:
+        """With the back end: register the keyframe's step (when
+        ``backend_step_registration`` is 'on'), update the pose graph and, when it added the
+        keyframe, the hint. Without it, ``result`` as it is.
+
+        Raises:
+            BackendError: gtsam failed beyond recovery (see :meth:`PoseGraph.update`).
+        """
+        if self.graph is None:
+            return Step(result, odom)
+        result = self.detector.with_step(result, proposal)
+        state = self.graph.update(result, odom)
+        if not state.added:
+            return Step(result, odom, state)
+        self._hint = GraphHint.from_keyframes(
+            self.graph.keyframes(), state.correction, state.covariance,
+            partial(self.graph.relative_covariance, index_b=state.index))
+        return Step(result, odom, state, self._hint)
+
+    # -- the session -------------------------------------------------------------------------
 
     def map_poses(self) -> dict[tuple[int, int], FloatArray]:
         """Map-frame poses of every keyframe the graph holds (this session and a loaded map),
@@ -156,9 +208,17 @@ class LoopClosure:
         """Save the database with its clouds and the graph's map-frame poses."""
         return self.detector.save(path, self.map_poses() or None)
 
-    def reset(self) -> None:
-        """Forget this session's scans and keyframes (a loaded map stays in the graph)."""
-        self.detector.reset()
+    def reset(self, detector: LoopDetector | None = None) -> None:
+        """Forget this session's scans and keyframes (a loaded map stays in the graph).
+
+        Args:
+            detector: go on with this one (the node starts a new detector) instead of
+                emptying the current one.
+        """
+        if detector is None:
+            self.detector.reset()
+        else:
+            self.detector = detector
         self._hint = None
         if self.graph is not None:
             self.graph.reset()

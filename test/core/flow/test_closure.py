@@ -192,3 +192,50 @@ def test_a_narrow_view_closes_a_loop_with_a_keyframe_that_shared_its_structure(
     assert np.linalg.norm(loop.matrix()[:3, 3] - ref[:3, 3]) < 0.1
     monkeypatch.setattr(StructureIndex, 'shared', lambda *a, **k: [])
     assert last_loops() == ()
+
+
+def test_the_halves_the_node_runs_on_two_threads_give_what_process_gives() -> None:
+    # propose (stage 1), then verify and commit (stage 2: the loops go out between them):
+    # the same loops, graph and hint as process(), keyframe by keyframe.
+    drive = _drive()
+    cfg = CFG.replace(distance_threshold=0.0, backend_step_registration='on')
+    whole, halves = LoopClosure(LoopDetector(cfg)), LoopClosure(LoopDetector(cfg))
+    for k, i in enumerate(DRIVE):
+        odom = OdomSample(k * SEC, drive.odometry(i))
+        want = whole.process(drive.scan(i).points, k * SEC, odom)
+        proposal = halves.propose(drive.scan(i).points, k * SEC, odom)
+        assert proposal is not None
+        verified = halves.verify(proposal)
+        assert verified.loops == want.scan.loops and verified.step is None
+        got = halves.commit(proposal, verified, odom)
+        assert math.isfinite(got.scan.times.step)  # the registered step is tried here
+        assert got.scan.loops == want.scan.loops and got.scan.step == want.scan.step
+        assert want.backend is not None and got.backend is not None
+        np.testing.assert_array_equal(got.backend.pose, want.backend.pose)
+        assert want.estimate is whole.hint and got.estimate is halves.hint
+        assert got.estimate is not None and want.estimate is not None
+        np.testing.assert_array_equal(got.estimate.poses, want.estimate.poses)
+    assert [c.source for c in want.scan.loops] == ['graph']
+    assert halves.graph is not None
+    # A reset forgets the session's keyframes, the graph and its hint; a new detector may
+    # take over (the node's ~/reset).
+    fresh = LoopDetector(cfg)
+    halves.reset(fresh)
+    assert halves.detector is fresh and halves.hint is None and halves.graph.keyframes() == []
+
+
+def test_the_back_end_can_be_turned_off_whatever_the_configuration() -> None:
+    # The node without odometry: loops only, no graph, no registered step.
+    drive = _drive()
+    closure = LoopClosure(LoopDetector(CFG.replace(backend_step_registration='on')),
+                          backend=False)
+    assert closure.graph is None
+    steps = [closure.process(drive.scan(i).points, k * SEC,
+                             OdomSample(k * SEC, drive.odometry(i))) for k, i in enumerate(DRIVE)]
+    assert all(s.backend is None and s.estimate is None and s.scan.step is None for s in steps)
+    assert [c.match_index for c in steps[-1].scan.loops] == [0]
+    # A gated-out scan: what the detector's own process() gives.
+    gated = LoopClosure(LoopDetector(CFG.replace(keyframe_min_sec=100.0)), backend=False)
+    gated.process(drive.scan(5).points, SEC)
+    out = gated.process(drive.scan(6).points, 2 * SEC, OdomSample(2 * SEC, drive.odometry(6)))
+    assert not out.scan.keyframe and out.scan.stamp_ns == 2 * SEC and out.scan.pose is not None
