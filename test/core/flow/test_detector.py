@@ -59,7 +59,7 @@ def test_revisit_is_found_with_fields_and_yaw() -> None:
     assert cand.margin > 0.1
     assert set(cand.to_dict()) == {'query_index', 'match_index', 'query_stamp_ns',
                                    'match_stamp_ns', 'match_session', 'distance', 'yaw',
-                                   'margin', 'verified', 'pose', 'fitness', 'rmse',
+                                   'margin', 'verified', 'pose', 'fitness',
                                    'covariance', 'reason', 'evidence', 'source', 'detail'}
     assert cand.source == 'descriptor'
     # Descriptor only: the pose is the yaw guess, nothing verified.
