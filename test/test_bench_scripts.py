@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
+from pathlib import Path
 
 from project_paths import ROOT
 
@@ -28,3 +30,14 @@ def test_bench_generalisation_runs_the_room_with_mixed_pixels() -> None:
     assert 'd_p50' in out
     line = next(ln for ln in out.splitlines() if ln.startswith('avia_like/handheld/room'))
     assert '+tilt8+edges0.5' in line and 'verified=' in line
+
+
+def test_bench_real_scores_a_real_recording(shared_data: Path, tmp_path: Path) -> None:
+    out = _bench('bench_real.py', '--sets', 'quickshack', '--odometry', 'bag',
+                 '--report', str(tmp_path / 'real.json'))
+    assert 'quickshack (avia.yaml, odometry bag)' in out
+    for label in ('loops', 'revisit recall', 'right refused', 'calibration', 'cost'):
+        assert f'  {label}' in out, label
+    report = json.loads((tmp_path / 'real.json').read_text())
+    assert report['bench'] == 'bench_real' and report['commit']
+    assert report['recordings']['quickshack']['published'] > 0

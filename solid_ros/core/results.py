@@ -98,7 +98,9 @@ class Evidence:
         known_place: the pose puts the query where the pose graph predicted it, within one
             coarse voxel counting its sigmas (1) or not (0).
         rmse: RMS point-to-plane distance of the supporting points, metres.
-        conflict: fraction of one scan's points in space the other sensor saw through.
+        conflict: fraction of one scan's points in space the other sensor saw through, in
+            coherent patches (at least 3 points in a cell of two voxels).
+        conflict_points: the same point by point, scattered points counted too.
         constraint: least horizontal constraint per structure point (10 m heading lever).
         constraint_near: the same with the supporting structure's own range as the lever.
         spread: the constraint left without the strongest object.
@@ -126,6 +128,7 @@ class Evidence:
     known_place: float = math.nan
     rmse: float = math.nan
     conflict: float = math.nan
+    conflict_points: float = math.nan
     constraint: float = math.nan
     constraint_near: float = math.nan
     spread: float = math.nan

@@ -245,7 +245,8 @@ class SharedDetector:
             return keyframe_clouds(self._detector, poses)
 
     def values(self) -> dict[str, object]:
-        """The detector's /diagnostics values: keyframe clouds and verification outcomes."""
+        """The detector's /diagnostics values: keyframe clouds, verification outcomes and
+        what the calibration learned."""
         det = self._detector
         out: dict[str, object] = {
             'keyframe_clouds': len(det.clouds),
@@ -253,4 +254,10 @@ class SharedDetector:
             'keyframe_clouds_dropped': det.clouds.dropped}
         for reason, count in sorted(dict(det.reasons).items()):
             out[f'verify_{reason}'] = count
+        # What the run learned about itself, and the bars it sets (core/verification).
+        for key, value in det.calibration.learned.as_dict().items():
+            out[f'calibration_{key}'] = value
+        bars = det.bars
+        out['verify_max_conflict_in_force'] = f'{bars.max_conflict:.4f}'
+        out['odom_check_drift_in_force'] = f'{bars.odom_drift_per_m:.4f}'
         return out

@@ -87,7 +87,7 @@ from solid_ros.core.flow.closure import LoopClosure  # noqa: E402
 from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 from solid_ros.core.geometry import rpy_matrix  # noqa: E402
 from solid_ros.core.odometry.track import OdomSample  # noqa: E402
-from solid_ros.core.results import LoopCandidate  # noqa: E402
+from solid_ros.core.results import EVIDENCE_FIELDS, LoopCandidate  # noqa: E402
 from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, avia_like, cast_scan, simulate  # noqa: E402
 from solid_ros.sim.drive import START_NS, DriveConfig, pose_matrix  # noqa: E402
 from solid_ros.sim.odometry import drift_planar  # noqa: E402
@@ -330,9 +330,8 @@ def score_case(case: Case, cfg: SolidConfig, ref: np.ndarray,
                          'correct': int(rec.correct(MAX_ERROR_M, MAX_ERROR_DEG)),
                          'true_place': int(gd <= case.radius), 'gt_distance_m': gd,
                          'trans_err_m': te, 'rot_err_deg': re_, 'distance': c.distance,
-                         'fitness': c.fitness, 'rmse': c.rmse, 'overlap': c.overlap,
-                         'conflict': c.conflict, 'constraint': c.constraint,
-                         'spread': c.spread, 'nees': n6})
+                         'fitness': c.fitness, 'nees': n6, 'detail': c.detail,
+                         **dict(zip(EVIDENCE_FIELDS, c.evidence))})
     scores = score_loops(records, truth.has_loop, max_error_m=MAX_ERROR_M,
                          max_error_deg=MAX_ERROR_DEG)
     revisiting = revisits(ref[:, :3, 3], radius=case.revisit_radius,

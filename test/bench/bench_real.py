@@ -19,7 +19,8 @@ every candidate against the reference poses and prints:
 
 ``--out DIR`` keeps each replay's output directory (``DIR/<recording>``: candidates.csv,
 report.json), so ``compare_replays.py`` can tell whether a change kept the behaviour.
-``--report FILE.json`` writes the figures with the date and commit, for ``doc/``.
+``--report FILE`` writes the figures with the date and commit: Markdown for ``doc/reports/``
+(``.md``), else JSON.
 
 Usage: ``python test/bench/bench_real.py [--sets hku1,quickshack,riv281] [--odometry
 kiss-icp|bag] [--out DIR] [--report FILE] [--set KEY=VALUE ...]``.
@@ -28,7 +29,6 @@ kiss-icp|bag] [--out DIR] [--report FILE] [--set KEY=VALUE ...]``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -44,7 +44,7 @@ sys.path.insert(0, str(ROOT))
 from solid_ros.tools.replay import _overrides, load_config, replay  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from report import bench_meta  # noqa: E402
+from report import bench_meta, write_report  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
 # Recording -> the shipped preset nearest its sensor.
@@ -77,6 +77,8 @@ def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any]) -> dic
         'verify_p50_ms': float(np.median(verify)) if len(verify) else math.nan,
         'verify_p95_ms': float(np.percentile(verify, 95)) if len(verify) else math.nan,
         'scans_per_s': r.inputs.count / wall, 'wall_s': wall,
+        'calibration': r.report['verification'].get('calibration', {}),
+        'max_conflict': r.report['verification'].get('max_conflict'),
     }
 
 
@@ -97,10 +99,20 @@ def lines(name: str, s: dict[str, Any]) -> list[str]:
         f'poses: {refused}',
         f'  ATE            odometry {_m(s["ate_odometry_m"])}, corrected '
         f'{_m(s["ate_corrected_m"])}',
+        f'  calibration    {_calibration(s)}',
         f'  cost           verify p50 {s["verify_p50_ms"]:.1f} ms, p95 '
         f'{s["verify_p95_ms"]:.1f} ms per keyframe; {s["scans_per_s"]:.1f} scans/s '
         f'({s["wall_s"]:.1f} s)',
     ]
+
+
+def _calibration(s: dict[str, Any]) -> str:
+    c = s['calibration']
+    if not c:
+        return '-'
+    return (f'{c["right"]} right of {c["tried"]} pairs, conflict q75 {c["conflict_q75"]:.3f} '
+            f'-> bar {s["max_conflict"]:.3f}; odometry drift {c["drift_per_m"]:.4f} per m '
+            f'({c["drift_pairs"]} pairs)')
 
 
 def _m(value: float | None) -> str:
@@ -125,11 +137,34 @@ def main() -> int:
         figures[name] = run(name, args.odometry, args.out, sets)
         print('\n'.join(lines(name, figures[name])), flush=True)
     if args.report is not None:
-        args.report.parent.mkdir(parents=True, exist_ok=True)
         meta = bench_meta('bench_real', vars(args) | {'sets': args.sets.split(',')})
-        args.report.write_text(json.dumps(meta | {'recordings': figures}, indent=1,
-                                          default=str) + '\n')
+        write_report(args.report, meta, COLUMNS, [_row(k, v) for k, v in figures.items()],
+                     {'recordings': figures}, NOTES)
     return 0
+
+
+COLUMNS = ['recording', 'preset', 'odometry', 'keyframes', 'loops', 'false', 'precision',
+           'revisit recall', 'right poses refused', 'refused by', 'ATE odometry / corrected',
+           'calibration', 'verify p50 / p95 ms', 'scans/s']
+NOTES = ('Loops are false when their pose is beyond 1 m / 3 deg of the reference relative '
+         'pose. A right pose refused is a candidate whose (rejected) pose lies within that of '
+         'the reference. Calibration: right alignments of the run / pairs tried, the conflict '
+         'bar they set, the odometry drift measured per metre.')
+
+
+def _row(name: str, s: dict[str, Any]) -> list[Any]:
+    rv = s['revisits']
+    refused = sum(s['right_refused'].values())
+    c = s['calibration']
+    return [name, s['preset'], s['odometry'], s['keyframes'], s['published'], s['false'],
+            '-' if s['precision'] is None else f'{s["precision"]:.3f}',
+            f'{rv["found"]}/{rv["revisiting"]}' if rv['revisiting'] else 'no revisit',
+            f'{refused}/{s["right_poses"]}',
+            ', '.join(f'{k} {v}' for k, v in s['right_refused'].items()) or '-',
+            f'{_m(s["ate_odometry_m"])} / {_m(s["ate_corrected_m"])}',
+            (f'{c["right"]}/{c["tried"]}, bar {s["max_conflict"]:.3f}, drift '
+             f'{c["drift_per_m"]:.3f}/m') if c else '-',
+            f'{s["verify_p50_ms"]:.1f} / {s["verify_p95_ms"]:.1f}', f'{s["scans_per_s"]:.1f}']
 
 
 if __name__ == '__main__':

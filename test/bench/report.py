@@ -39,3 +39,25 @@ def bench_meta(bench: str, options: dict[str, Any]) -> dict[str, Any]:
         'machine': f'{platform.machine()}, {os.cpu_count()} cores, load '
                    f'{os.getloadavg()[0]:.1f}',
     }
+
+
+def write_report(path: Path, meta: dict[str, Any], columns: list[str],
+                 rows: list[list[Any]], data: dict[str, Any], notes: str = '') -> None:
+    """Write a bench report: Markdown (``.md``: the header, then one table) for ``doc/``, or
+    JSON (any other suffix: the header and ``data``)."""
+    import json
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix != '.md':
+        path.write_text(json.dumps(meta | data, indent=1, default=str) + '\n')
+        return
+    lines = [f'# {meta["bench"]} report', '',
+             f'Written by `test/bench/{meta["bench"]}.py` on {meta["date"]}, commit '
+             f'`{meta["commit"]}`{" (with uncommitted changes)" if meta["dirty"] else ""}, '
+             f'{meta["machine"]}. Command: `{meta["command"]}`. Regenerated, never edited by '
+             'hand.', '']
+    if notes:
+        lines += [notes, '']
+    lines += ['| ' + ' | '.join(columns) + ' |', '|' + ' --- |' * len(columns)]
+    lines += ['| ' + ' | '.join(str(c) for c in row) + ' |' for row in rows]
+    path.write_text('\n'.join(lines) + '\n')

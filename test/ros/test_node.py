@@ -356,6 +356,11 @@ def test_hku1_bag_replay_finds_the_revisit(harness: Callable[..., Harness],
     # Per-stage times and what verification decided.
     assert float(values['describe_ms_p50']) > 0.0 and float(values['verify_ms_p50']) > 0.0
     assert int(values['verify_verified']) == len(got) and int(values['keyframe_clouds']) > 0
+    # What the run learned about itself, as the replay's twin learned it.
+    learned = twin.calibration.learned
+    assert int(values['calibration_tried']) == learned.tried > 0
+    assert float(values['verify_max_conflict_in_force']) == pytest.approx(
+        twin.bars.max_conflict, abs=1e-4)
 
 
 def test_bag_written_in_tmp_path(harness: Callable[..., Harness], hku1: list[tuple[str, Any]],
