@@ -404,6 +404,14 @@ class PoseGraph:
         """Corrected pose ``T_map_sensor`` of every keyframe, by index."""
         return {k.index: k.pose for k in self.keyframes()}
 
+    def placed_map(self) -> dict[tuple[int, int], FloatArray]:
+        """The loaded map's fixed keyframe poses by ``(session, index)`` once the newest
+        keyframe's segment is tied to that map (the session relocalised in it; empty before:
+        the session's poses are then in another frame)."""
+        if self._last is None or not self._segs.tied(self._last.segment, MAP):
+            return {}
+        return dict(self._prior)
+
     def map_poses(self) -> dict[tuple[int, int], FloatArray]:
         """Map-frame poses by ``(session, index)``: this session's corrected keyframes and the
         loaded map's fixed ones (what a saved database stores)."""

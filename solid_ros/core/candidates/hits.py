@@ -24,9 +24,11 @@ from solid_ros.core.candidates.covisibility import StructureIndex
 from solid_ros.core.candidates.position import (
     GraphCandidate,
     GraphHint,
+    MapCandidate,
     guess_deviation,
     heading_tolerance_deg,
     knows_place,
+    map_keyframes,
     near_keyframes,
     position_sigma,
     view_keyframes,
@@ -50,9 +52,11 @@ STRAY_FLOOR_M = 1.0
 
 def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
                     database: DescriptorDatabase, own_seqs: Mapping[int, int],
-                    views: Mapping[int, FloatArray], mount: Mount) -> list[Hit]:
+                    views: Mapping[int, FloatArray], mount: Mount,
+                    map_seqs: Mapping[tuple[int, int], int] | None = None) -> list[Hit]:
     """The proposal's hits with the graph's guesses, then the keyframes near the query (or
-    that saw its place) that the descriptor did not propose.
+    that saw its place) that the descriptor did not propose, then those of a loaded map near
+    it once the session is relocalised in that map (:func:`map_keyframes`).
 
     Args:
         proposal: the keyframe's proposal (needs its odometry pose and keyframe cloud, else
@@ -63,6 +67,7 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
         own_seqs: this session's keyframe index -> database sequence number.
         views: this session's keyframe index -> view centre (sensor frame).
         mount: the sensor's mount (guesses are registered in the levelled frames).
+        map_seqs: a loaded map's ``(session, index)`` -> database sequence number.
     """
     cfg = config
     if proposal.pose is None or proposal.cloud_points is None:
@@ -85,8 +90,13 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
                         sigma_m=own.sigma, place_sigma=own.sigma_to(h.match.index))
         hits.append(h)
     taken = {h.match.index for h in hits if h.match.session == cfg.session_id}
-    return hits + own.hits([(c, 'near') for c in near] + [(c, 'view') for c in seen], taken,
-                           database, own_seqs)
+    out = hits + own.hits([(c, 'near') for c in near] + [(c, 'view') for c in seen], taken,
+                          database, own_seqs)
+    mapped = map_keyframes(hint, odom, cfg)
+    if mapped and map_seqs:
+        out += own.map_hits(mapped, {(h.match.session, h.match.index) for h in out}, database,
+                            map_seqs)
+    return out
 
 
 def shared_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
@@ -147,14 +157,15 @@ class _Placing:
         """The graph's ``T_mq`` of a descriptor hit it places (within
         ``graph_candidate_max_radius_m``, or proposed by view), else None."""
         cfg = self._cfg
-        if hit.match.session != cfg.session_id:
-            return None
-        pose_m = self._hint.pose_of(hit.match.index)
+        if hit.match.session == cfg.session_id:
+            pose_m = self._hint.pose_of(hit.match.index)
+        else:  # a loaded map's keyframe, once the session is placed in that map
+            pose_m = self._hint.map_pose_of(hit.match.session, hit.match.index)
         if pose_m is None:
             return None
         T = np.asarray(np.linalg.solve(pose_m, self.predicted), dtype=np.float64)
         if (np.linalg.norm(T[:3, 3]) <= cfg.graph_candidate_max_radius_m
-                or hit.match.index in viewed):
+                or (hit.match.session == cfg.session_id and hit.match.index in viewed)):
             return T
         return None
 
@@ -174,6 +185,27 @@ class _Placing:
                            self._mount.level_pose(c.T_mq), kind == 'near', self.tol,
                            kind == 'view', self.sigma, self.sigma_to(c.index),
                            kind == 'shared'))
+        return out
+
+
+    def map_hits(self, found: list[MapCandidate], taken: set[tuple[int, int]],
+                 database: DescriptorDatabase, map_seqs: Mapping[tuple[int, int], int]
+                 ) -> list[Hit]:
+        """Hits of the loaded map's keyframes near the query not ``taken``: source
+        ``'graph'``, the graph's guess first, the query's own sigma (the graph holds no joint
+        marginal with the fixed map)."""
+        proposal, out = self._proposal, []
+        for c in found:
+            seq = map_seqs.get((c.session, c.index))
+            if (c.session, c.index) in taken or seq is None or not database.is_stored(seq):
+                continue
+            taken.add((c.session, c.index))
+            _, _, stamp = database.match_info(seq)
+            distance = math.nan if proposal.r_solid is None else cosine_distance(
+                proposal.r_solid, database.r_solid(seq))
+            out.append(Hit(Match(seq, c.index, c.session, stamp, distance), math.nan,
+                           database.heading(seq).copy(), 'graph',
+                           self._mount.level_pose(c.T_mq), True, self.tol, False, self.sigma))
         return out
 
 

@@ -66,7 +66,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -79,9 +79,9 @@ from solid_ros.core.config import SolidConfig
 if TYPE_CHECKING:
     from solid_ros.core.results import Keyframe
 
-__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'eligible', 'guess_deviation',
-           'heading_tolerance_deg', 'knows_place', 'near_keyframes', 'position_sigma',
-           'search_radius', 'view_keyframes']
+__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'MapCandidate', 'eligible',
+           'guess_deviation', 'heading_tolerance_deg', 'knows_place', 'map_keyframes',
+           'near_keyframes', 'position_sigma', 'search_radius', 'view_keyframes']
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -110,6 +110,9 @@ class GraphHint:
         relative: ``relative(j)``: 6x6 covariance (ROS order) of keyframe ``j``'s pose
             relative to the newest one, ``X_j^-1 X_newest`` (the graph's joint marginal, asked
             of gtsam on demand), or None when unknown; None: only ``covariance`` is known.
+        map_keys: (M, 2) ``(session, index)`` of a loaded map's keyframes, once the session
+            is relocalised in that map (empty before).
+        map_poses: (M, 4, 4) their fixed poses in the map frame (this session's map frame).
     """
 
     indices: IntArray
@@ -119,32 +122,51 @@ class GraphHint:
     correction: FloatArray
     covariance: FloatArray | None = None
     relative: Callable[[int], FloatArray | None] | None = None
+    map_keys: IntArray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    map_poses: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
     @classmethod
     def of(cls, indices: npt.ArrayLike, stamps_ns: npt.ArrayLike, poses: npt.ArrayLike,
            odom: npt.ArrayLike, correction: npt.ArrayLike,
            covariance: npt.ArrayLike | None = None,
-           relative: Callable[[int], FloatArray | None] | None = None) -> GraphHint:
-        """A hint holding read-only copies of the arrays."""
+           relative: Callable[[int], FloatArray | None] | None = None,
+           placed_map: Mapping[tuple[int, int], npt.ArrayLike] | None = None) -> GraphHint:
+        """A hint holding read-only copies of the arrays (``placed_map``: a loaded map's
+        keyframe poses by ``(session, index)`` once the session is relocalised in it)."""
         n = len(np.asarray(indices).reshape(-1))
         cov = None if covariance is None else _frozen(covariance, np.float64, (6, 6))
+        placed = dict(placed_map or {})
+        m = len(placed)
         return cls(_frozen(indices, np.int64, (n,)),  # type: ignore[arg-type]
                    _frozen(stamps_ns, np.int64, (n,)),  # type: ignore[arg-type]
                    _frozen(poses, np.float64, (n, 4, 4)),  # type: ignore[arg-type]
                    _frozen(odom, np.float64, (n, 4, 4)),  # type: ignore[arg-type]
                    _frozen(correction, np.float64, (4, 4)), cov,  # type: ignore[arg-type]
-                   relative)
+                   relative,
+                   _frozen(list(placed), np.int64, (m, 2)),  # type: ignore[arg-type]
+                   _frozen([placed[k] for k in placed], np.float64,  # type: ignore[arg-type]
+                           (m, 4, 4)))
 
     @classmethod
     def from_keyframes(cls, keyframes: Sequence[Keyframe], correction: npt.ArrayLike,
                        covariance: npt.ArrayLike | None = None,
-                       relative: Callable[[int], FloatArray | None] | None = None
+                       relative: Callable[[int], FloatArray | None] | None = None,
+                       placed_map: Mapping[tuple[int, int], npt.ArrayLike] | None = None
                        ) -> GraphHint:
-        """A hint from :meth:`~solid_ros.core.backend.posegraph.PoseGraph.keyframes`."""
+        """A hint from :meth:`~solid_ros.core.backend.posegraph.PoseGraph.keyframes` (and
+        :meth:`~solid_ros.core.backend.posegraph.PoseGraph.placed_map`)."""
         return cls.of([k.index for k in keyframes], [k.stamp_ns for k in keyframes],
                       np.array([k.pose for k in keyframes]).reshape(-1, 4, 4),
                       np.array([k.odom for k in keyframes]).reshape(-1, 4, 4),
-                      correction, covariance, relative)
+                      correction, covariance, relative, placed_map)
+
+    def map_pose_of(self, session: int, index: int) -> FloatArray | None:
+        """A placed map keyframe's pose (None: not in the placed map)."""
+        hit = np.flatnonzero((self.map_keys[:, 0] == session) & (self.map_keys[:, 1] == index))
+        if not len(hit):
+            return None
+        out: FloatArray = self.map_poses[int(hit[0])]
+        return out
 
     def predict(self, odom_pose: npt.ArrayLike) -> FloatArray:
         """Corrected pose ``T_map_odom @ odom_pose`` of a pose of the odometry."""
@@ -343,6 +365,42 @@ def near_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
     dist = np.linalg.norm(hint.poses[:, :3, 3] - predicted[:3, 3], axis=1)
     ok &= dist <= search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom))
     return _nearest(hint, ok, dist, predicted, config.graph_candidates)
+
+
+@dataclass(frozen=True)
+class MapCandidate:
+    """A keyframe of a loaded map near the query in the graph's estimate.
+
+    Attributes:
+        session: its session in the map.
+        index: its index in that session.
+        distance_m: its distance from the query's predicted position, metres.
+        T_mq: the graph's relative pose (query sensor in the keyframe's sensor frame).
+    """
+
+    session: int
+    index: int
+    distance_m: float
+    T_mq: FloatArray
+
+
+def map_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike,
+                  config: SolidConfig) -> list[MapCandidate]:
+    """The loaded map's keyframes near the query's predicted pose once the session is
+    relocalised in that map (:attr:`GraphHint.map_keys`), nearest first, at most
+    ``graph_candidates``, within the radius of :func:`near_keyframes`: a new session that
+    revisits a mapped place finds it by position as it finds its own, not only by
+    descriptor."""
+    if config.graph_candidates <= 0 or len(hint.map_keys) == 0 or len(hint.indices) == 0:
+        return []
+    odom = np.asarray(odom_pose, dtype=np.float64)
+    predicted = hint.predict(odom)
+    dist = np.linalg.norm(hint.map_poses[:, :3, 3] - predicted[:3, 3], axis=1)
+    radius = search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom))
+    picked = np.flatnonzero(dist <= radius)
+    picked = picked[np.argsort(dist[picked], kind='stable')][:config.graph_candidates]
+    return [MapCandidate(int(hint.map_keys[k, 0]), int(hint.map_keys[k, 1]), float(dist[k]),
+                         np.linalg.solve(hint.map_poses[k], predicted)) for k in picked]
 
 
 def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: npt.ArrayLike,

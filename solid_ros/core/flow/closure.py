@@ -194,7 +194,8 @@ class LoopClosure:
             return Step(result, odom, state)
         self._hint = GraphHint.from_keyframes(
             self.graph.keyframes(), state.correction, state.covariance,
-            partial(self.graph.relative_covariance, index_b=state.index))
+            partial(self.graph.relative_covariance, index_b=state.index),
+            self.graph.placed_map())
         return Step(result, odom, state, self._hint)
 
     # -- the session -------------------------------------------------------------------------

@@ -176,6 +176,8 @@ class LoopDetector:
         # returns the cloud or the reason there is none. None: such candidates stay unverified.
         self.fetch_cloud: CloudFetcher | None = None
         self._loaded = self.database.sessions() - {cfg.session_id}
+        # A loaded map's keyframes by (session, index), for candidates by position in it.
+        self._map_seqs = _loaded_seqs(self.database, self._loaded)
 
     @property
     def config(self) -> SolidConfig:
@@ -426,7 +428,7 @@ class LoopDetector:
         more: Callable[[], list[Hit]] | None = None
         if hint is not None and cfg.graph_candidates > 0 and self.verifier is not None:
             proposal.hits = with_graph_hits(proposal, hint, cfg, self.database, self._own_seqs,
-                                            self._views, self._mount)
+                                            self._views, self._mount, self._map_seqs)
             if structure is not None:
                 more = partial(shared_hits, proposal, hint, cfg, self.database,
                                self._own_seqs, self._mount, self._structures, structure)
@@ -778,6 +780,7 @@ class LoopDetector:
     def reset(self) -> None:
         """Forget every stored scan and cloud (the configuration stays)."""
         self.database = DescriptorDatabase(self._config)
+        self._map_seqs = {}
         self.clouds.clear()
         if self.verifier is not None:
             self.verifier.clear_cache()
@@ -824,6 +827,16 @@ def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:
     return (f'no usable point: 0 of {n} points are finite and inside the range gate '
             f'({cfg.min_range:g} to {cfg.max_range:g} m), the FOV ({cfg.fov_width_deg:g} deg) '
             f'and max_distance ({cfg.max_distance:g} m)')
+
+
+def _loaded_seqs(db: DescriptorDatabase, sessions: set[int]) -> dict[tuple[int, int], int]:
+    """Sequence numbers of the stored scans of ``sessions`` by ``(session, index)``."""
+    out = {}
+    for seq in db.stored_seqs() if sessions else []:
+        index, session, _ = db.match_info(seq)
+        if session in sessions:
+            out[(session, index)] = seq
+    return out
 
 
 def _same_place(a: Match, b: Match, hood: int) -> bool:

@@ -274,3 +274,36 @@ def test_the_run_learns_its_right_alignments_and_its_odometrys_drift() -> None:
         bad.append(T)
     learned = _calibrated(bad, drive, scans).calibration.learned
     assert 0.15 < learned.drift_per_m < 0.3
+
+
+def test_a_relocalised_session_finds_the_saved_map_by_position(tmp_path: Path) -> None:
+    """Once a new session is relocalised in a loaded map, the map's keyframes near it are
+    candidates by position as its own are: a revisit the descriptor misses is still found."""
+    drive = _drive()
+    first = LoopClosure(LoopDetector(CFG))
+    for k, i in enumerate(DRIVE[:4]):
+        first.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC, drive.pose(i)))
+    first.save(tmp_path / 'map.npz')
+    offset = np.eye(4)
+    offset[:3, :3] = rot_z(np.pi / 2)
+    offset[:3, 3] = [50.0, -20.0, 0.0]
+    second = LoopClosure.load(tmp_path / 'map.npz', CFG.replace(session_id=1))
+    step = second.process(drive.scan(273).points, 100 * SEC,
+                          OdomSample(100 * SEC, offset @ drive.pose(273)))
+    assert step.backend is not None and [o.reason for o in step.backend.loops] == ['anchor']
+    hint = second.hint
+    assert hint is not None and hint.map_keys.tolist()[:1] == [[0, 0]]
+    # The descriptor now proposes nothing: the map's keyframe 0 comes by position.
+    second.detector.reconfigure(second.config.replace(distance_threshold=0.0))
+    step = second.process(drive.scan(274).points, 101 * SEC,
+                          OdomSample(101 * SEC, offset @ drive.pose(274)))
+    (loop,) = step.scan.loops
+    assert (loop.match_session, loop.match_index, loop.source) == (0, 0, 'graph')
+    ref = np.linalg.solve(drive.pose(5), drive.pose(274))
+    assert np.linalg.norm(loop.matrix()[:3, 3] - ref[:3, 3]) < 0.3
+    # Before the session is placed in the map, the map offers nothing by position.
+    fresh = LoopClosure.load(tmp_path / 'map.npz', CFG.replace(session_id=1,
+                                                               distance_threshold=0.0))
+    step = fresh.process(drive.scan(274).points, 101 * SEC,
+                         OdomSample(101 * SEC, offset @ drive.pose(274)))
+    assert step.scan.loops == () and (fresh.hint is None or len(fresh.hint.map_keys) == 0)
