@@ -20,7 +20,7 @@ from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Log, Verified
 from solid_ros.ros.stats import NodeStats
 
-__all__ = ['LoopOutput', 'candidates_msg', 'loop_line']
+__all__ = ['LoopOutput', 'candidates_msg', 'loop_line', 'refusal_line']
 
 
 class LoopOutput:
@@ -44,8 +44,12 @@ class LoopOutput:
         self._session_id, self._peer_robots = session_id, peer_robots
 
     def take(self, verified: Verified) -> None:
-        """Output a keyframe's loops, if it has any."""
+        """Output a keyframe's loops, if it has any; log why each other candidate was refused
+        (debug: the rule and the evidence it read)."""
         loops = verified.result.loops
+        for c in verified.result.attempts:
+            if c.detail:
+                self._log.debug(refusal_line(c))
         if not loops:
             return
         self._stats.loops += len(loops)
@@ -78,6 +82,12 @@ def candidates_msg(cands: Sequence[LoopCandidate]) -> Float64MultiArray:
                       for label, size, stride in layout_dims(len(rows))]
     msg.data = rows.reshape(-1).tolist()
     return msg
+
+
+def refusal_line(c: LoopCandidate) -> str:
+    """The log line of one refused candidate: the rule that refused it and its reading."""
+    return (f'candidate: keyframe {c.query_index} -> session {c.match_session} keyframe '
+            f'{c.match_index} ({c.source}) refused by {c.reason}: {c.detail}')
 
 
 def loop_line(c: LoopCandidate) -> str:

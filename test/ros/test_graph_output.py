@@ -49,6 +49,9 @@ class Log:
     def info(self, message: str, **kwargs: object) -> None:
         self.lines.append(('info', message))
 
+    def debug(self, message: str, **kwargs: object) -> None:
+        pass
+
     def warning(self, message: str, **kwargs: object) -> None:
         self.lines.append(('warning', message))
 

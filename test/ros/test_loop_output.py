@@ -15,7 +15,7 @@ from solid_ros.core.flow.closure import LoopClosure  # noqa: E402
 from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 from solid_ros.core.odometry.track import OdomSample  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
-from solid_ros.ros.loop_output import LoopOutput, loop_line  # noqa: E402
+from solid_ros.ros.loop_output import LoopOutput, loop_line, refusal_line  # noqa: E402
 from solid_ros.ros.markers import LoopMarkers  # noqa: E402
 from solid_ros.ros.shared_detector import SharedDetector  # noqa: E402
 from solid_ros.ros.stages import Verified  # noqa: E402
@@ -67,3 +67,12 @@ def test_loop_line_of_a_verified_loop() -> None:
     assert loop_line(c) == ('loop: keyframe 9 (5.000000007 s) -> session 0 keyframe 2 '
                             '(1.000000000 s), verified, fitness 0.80, rmse 0.050 m, yaw 28.6 '
                             'deg, t (1.00, 2.00, 3.00) m')
+
+
+def test_a_refused_candidate_is_logged_with_its_rule_and_reading() -> None:
+    from solid_ros.core.results import Evidence, LoopCandidate
+
+    c = LoopCandidate(9, 2, 5 * SEC, SEC, 0, 0.1, 0.5, 0.2, reason='conflict',
+                      evidence=Evidence(conflict=0.081), detail='conflict 0.081 > 0.063')
+    assert refusal_line(c) == ('candidate: keyframe 9 -> session 0 keyframe 2 (descriptor) '
+                               'refused by conflict: conflict 0.081 > 0.063')

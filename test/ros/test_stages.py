@@ -28,6 +28,9 @@ class Log:
     def __init__(self) -> None:
         self.lines: list[tuple[str, str]] = []
 
+    def debug(self, message: str, **kwargs: Any) -> None:
+        self.lines.append(('debug', message))
+
     def info(self, message: str, **kwargs: Any) -> None:
         self.lines.append(('info', message))
 
