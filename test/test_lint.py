@@ -32,3 +32,17 @@ def test_mypy_strict_core() -> None:
     proc = subprocess.run([str(BIN / 'mypy'), '--strict', '--no-error-summary', *modules],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_no_function_over_80_lines_in_core_ros_and_tools() -> None:
+    import ast
+
+    long = []
+    for room in ('core', 'ros', 'tools'):
+        for path in sorted((ROOT / 'solid_ros' / room).rglob('*.py')):
+            for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    lines = (node.end_lineno or node.lineno) - node.lineno + 1
+                    if lines > 80:
+                        long.append(f'{path.relative_to(ROOT)}:{node.name} {lines} lines')
+    assert not long, long
