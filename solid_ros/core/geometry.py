@@ -134,3 +134,9 @@ def rotation_deg(q1: npt.NDArray[np.float64], q2: npt.NDArray[np.float64]) -> fl
     """Angle of the relative rotation between two unit quaternions, degrees."""
     c = min(abs(float(q1 @ q2)), 1.0)
     return math.degrees(2.0 * math.acos(c))
+
+
+def angle_deg(T: npt.ArrayLike) -> float:
+    """Rotation angle of a 4x4 (or 3x3) transform's rotation, degrees in [0, 180]."""
+    R = np.asarray(T, dtype=np.float64)[:3, :3]
+    return math.degrees(math.acos(min(max((float(np.trace(R)) - 1.0) / 2.0, -1.0), 1.0)))

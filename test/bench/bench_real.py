@@ -77,6 +77,8 @@ def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any]) -> dic
         'verify_p50_ms': float(np.median(verify)) if len(verify) else math.nan,
         'verify_p95_ms': float(np.percentile(verify, 95)) if len(verify) else math.nan,
         'scans_per_s': r.inputs.count / wall, 'wall_s': wall,
+        'calibration': r.report['verification'].get('calibration', {}),
+        'max_conflict': r.report['verification'].get('max_conflict'),
     }
 
 
@@ -97,10 +99,20 @@ def lines(name: str, s: dict[str, Any]) -> list[str]:
         f'poses: {refused}',
         f'  ATE            odometry {_m(s["ate_odometry_m"])}, corrected '
         f'{_m(s["ate_corrected_m"])}',
+        f'  calibration    {_calibration(s)}',
         f'  cost           verify p50 {s["verify_p50_ms"]:.1f} ms, p95 '
         f'{s["verify_p95_ms"]:.1f} ms per keyframe; {s["scans_per_s"]:.1f} scans/s '
         f'({s["wall_s"]:.1f} s)',
     ]
+
+
+def _calibration(s: dict[str, Any]) -> str:
+    c = s['calibration']
+    if not c:
+        return '-'
+    return (f'{c["right"]} right of {c["tried"]} pairs, conflict q75 {c["conflict_q75"]:.3f} '
+            f'-> bar {s["max_conflict"]:.3f}; odometry drift {c["drift_per_m"]:.4f} per m '
+            f'({c["drift_pairs"]} pairs)')
 
 
 def _m(value: float | None) -> str:

@@ -88,6 +88,7 @@ from solid_ros.core.descriptor.solid import describe, preprocess, voxel_downsamp
 from solid_ros.core.errors import CloudError, ConfigError
 from solid_ros.core.flow.place import HitPlace
 from solid_ros.core.geometry import (
+    angle_deg,
     pose_to_vector,
     rot_z,
     rotation_deg,
@@ -105,7 +106,15 @@ from solid_ros.core.results import (
     StageTimes,
 )
 from solid_ros.core.stamps import check_stamp
-from solid_ros.core.verification.judge import Measures, judge
+from solid_ros.core.verification.calibration import (
+    AGREE_DEG,
+    AGREE_M,
+    PAIR_MAX_BACK,
+    PAIR_MAX_TURN_DEG,
+    PAIR_PATH_M,
+    Calibration,
+)
+from solid_ros.core.verification.judge import Bars, Measures, judge
 from solid_ros.core.verification.judge import bars as judge_bars
 from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
 from solid_ros.core.verification.registration import Query, coarsened
@@ -147,7 +156,10 @@ class LoopDetector:
         self._kf_stamp: int | None = None
         self._kf_pose: FloatArray | None = None
         self._last_loop_query: int | None = None
-        self._path = OdometryPath(cfg.capacity)  # path driven up to each own keyframe
+        # Path driven up to each own keyframe; a jump (reset) starts a new segment.
+        self._path = OdometryPath(cfg.capacity, cfg.backend_segment_jump_m)
+        # What right alignments and the odometry's drift look like on this run.
+        self.calibration = Calibration()
         # Database sequence number of each own keyframe, by index: written by propose, read
         # by verify (on another thread in the node, where the database's own map may move).
         self._own_seqs: dict[int, int] = {}
@@ -169,6 +181,13 @@ class LoopDetector:
     def config(self) -> SolidConfig:
         """Current settings."""
         return self._config
+
+    @property
+    def bars(self) -> Bars:
+        """The judge's thresholds now: the settings and what the run learned."""
+        if self.verifier is not None:
+            return self.verifier.bars
+        return judge_bars(self._config, self.calibration.learned)
 
     @property
     def num_keyframes(self) -> int:
@@ -432,12 +451,66 @@ class LoopDetector:
             taken.append(c)
         if taken:
             self._last_loop_query = proposal.query_index
+        self._calibrate(proposal)
         times = StageTimes(proposal.describe_ms, proposal.search_ms,
                            (time.perf_counter() - t0) * 1e3)
         result = ScanResult(proposal.stamp_ns, True, proposal.query_index, proposal.pose,
                             tuple(taken), tuple(attempts), proposal.best, times,
                             proposal.descriptor)
         return self.with_step(result, proposal) if step else result
+
+    def _calibrate(self, proposal: Proposal) -> None:
+        """Register the keyframe to a partner a few metres back along the odometry and teach
+        the calibration what a right alignment and the odometry's drift look like here (see
+        :mod:`solid_ros.core.verification.calibration`)."""
+        verifier, query = self.verifier, proposal.query
+        if (verifier is None or query is None or not query.usable or proposal.pose is None
+                or not self.calibration.wants(proposal.query_index)):
+            return
+        partner = self._partner(proposal.query_index, proposal.pose)
+        if partner is None:
+            return
+        seq, path = partner
+        pose_j, cloud = self.database.pose(seq), self.clouds.get(seq)
+        if pose_j is None or cloud is None:
+            return
+        odo = np.linalg.solve(vector_to_matrix(pose_j), vector_to_matrix(proposal.pose))
+        guess = self._mount.level_pose(np.asarray(odo, dtype=np.float64))
+        coarse = verifier.coarse(query, (self._config.session_id, seq), cloud, [], (guess,))
+        if coarse.rejection is not None:
+            self.calibration.add(False, math.nan, False, math.nan, path)
+        else:
+            m = verifier.measure(query, coarse)
+            off = np.linalg.solve(guess, m.T_mq)
+            error = float(np.linalg.norm(off[:3, 3]))
+            right = (m.converged == 1.0 and error < AGREE_M and angle_deg(off) < AGREE_DEG
+                     and m.overlap >= self._config.verify_min_overlap)
+            # The drift only from poses the judge stands by as loops: a room aliases a few
+            # metres off, a street seen from a car slides along itself (riv281: 2-12 m).
+            verified = judge(m, verifier.bars, 'fine').verified
+            self.calibration.add(right, m.conflict if right else math.nan, verified, error,
+                                 path)
+        verifier.learn(self.calibration.learned)
+
+    def _partner(self, index: int, pose: FloatArray) -> tuple[int, float] | None:
+        """This session's keyframe a few metres back along the odometry (its sequence number
+        and the path between): the newest one :data:`PAIR_PATH_M` back or turned
+        :data:`PAIR_MAX_TURN_DEG` from ``pose``, else the oldest within
+        :data:`PAIR_MAX_BACK` keyframes; None when none is stored on the segment."""
+        best: tuple[int, float] | None = None
+        for back in range(1, PAIR_MAX_BACK + 1):
+            seq = self._own_seqs.get(index - back)
+            path = self._path.between(index - back, index)
+            if seq is None or path is None or not self.database.is_stored(seq):
+                break
+            other = self.database.pose(seq)
+            turned = other is not None and rotation_deg(pose[3:], other[3:]) > PAIR_MAX_TURN_DEG
+            if turned and best is not None:
+                break  # the one before shares more of the view
+            best = (seq, path)
+            if path >= PAIR_PATH_M or turned:
+                break
+        return best
 
     def with_step(self, result: ScanResult, proposal: Proposal) -> ScanResult:
         """``result`` (of :meth:`verify` with ``step=False``) with its registered step, when
@@ -499,9 +572,9 @@ class LoopDetector:
     def _odometry(self, proposal: Proposal, match: Match, T_mq: FloatArray
                   ) -> tuple[float, float]:
         """The odometry check of a loop ``T_mq`` (sensor frames, not levelled) from the query
-        to ``match``: how far its translation is from this session's odometry, and what
-        ``odom_check_drift`` of the path driven between them plus ``odom_check_slack_m``
-        allows; NaN where the odometry says nothing (check off, another session, no pose)."""
+        to ``match``: how far its translation is from this session's odometry, and what the
+        judge's bars allow over the path driven between them; NaN where the odometry says
+        nothing (check off, another session, no pose, a jump of the odometry between)."""
         cfg = self._config
         if (cfg.odom_check_drift <= 0.0 or match.session != cfg.session_id
                 or proposal.pose is None):
@@ -510,8 +583,7 @@ class LoopDetector:
         path = self._path.between(match.index, proposal.query_index)
         if pose_m is None or path is None:
             return math.nan, math.nan
-        allowed = cfg.odom_check_drift * path + cfg.odom_check_slack_m
-        return disagreement(T_mq, proposal.pose, pose_m), allowed
+        return disagreement(T_mq, proposal.pose, pose_m), self.bars.odom_allowed(path)
 
     def _place(self, proposal: Proposal, hit: Hit, centre: FloatArray) -> HitPlace:
         """What the judge's context rules ask of a hit's place (levelled poses)."""
@@ -524,7 +596,7 @@ class LoopDetector:
         """Without verification only the context rules judge (the odometry: no pose to place
         in a graph)."""
         mode = self._config.heading_match
-        bars = judge_bars(self._config)
+        bars = self.bars
         out = []
         for h in proposal.hits:
             c = self._candidate(proposal, h, estimate_yaw(proposal.heading, h.heading, mode), None)
@@ -714,6 +786,9 @@ class LoopDetector:
         self._own_seqs.clear()
         self._views.clear()
         self._structures.clear()
+        self.calibration.clear()
+        if self.verifier is not None:
+            self.verifier.learn(self.calibration.learned)
 
     def save(self, path: str | Path,
              map_poses: Mapping[tuple[int, int], Any] | None = None) -> Path:

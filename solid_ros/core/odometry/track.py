@@ -19,6 +19,7 @@ sessions have no odometry in common with this one.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -214,36 +215,50 @@ class OdometryPath:
     """Path length driven up to each keyframe of this session, from the keyframes' poses.
 
     Keyframes without a pose get none; the path over such a gap is the straight line between
-    the posed keyframes on either side (a lower bound, so the check only gets stricter).
+    the posed keyframes on either side (a lower bound, so the check only gets stricter). A step
+    longer than ``jump_m`` between two posed keyframes is a jump of the odometry (a reset, a
+    relocalisation), not a path: the keyframes on either side lie on different segments and
+    there is no path between them.
 
     Args:
         capacity: most keyframes remembered (the oldest is forgotten first).
+        jump_m: a longer step between two keyframes starts a new segment (inf: never).
     """
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, jump_m: float = math.inf) -> None:
         self._capacity = max(int(capacity), 1)
-        self._at: dict[int, float] = {}
+        self._jump_m = jump_m
+        self._at: dict[int, tuple[int, float]] = {}
         self._last: FloatArray | None = None
         self._total = 0.0
+        self._segment = 0
 
     def add(self, index: int, pose: FloatArray | None) -> None:
         """Record keyframe ``index`` (in order) with its pose vector, if any."""
         if pose is None:
             return
         if self._last is not None:
-            self._total += float(np.linalg.norm(pose[:3] - self._last[:3]))
+            step = float(np.linalg.norm(pose[:3] - self._last[:3]))
+            if step > self._jump_m:
+                self._segment += 1
+            else:
+                self._total += step
         self._last = np.asarray(pose, dtype=np.float64).copy()
-        self._at[int(index)] = self._total
+        self._at[int(index)] = (self._segment, self._total)
         while len(self._at) > self._capacity:
             self._at.pop(next(iter(self._at)))
 
     def between(self, older: int, newer: int) -> float | None:
-        """Path driven from keyframe ``older`` to ``newer``; None when either has no pose."""
+        """Path driven from keyframe ``older`` to ``newer``; None when either has no pose or
+        they lie on different segments."""
         a, b = self._at.get(int(older)), self._at.get(int(newer))
-        return None if a is None or b is None else b - a
+        if a is None or b is None or a[0] != b[0]:
+            return None
+        return b[1] - a[1]
 
     def clear(self) -> None:
         """Forget everything (after a reset)."""
         self._at.clear()
         self._last = None
         self._total = 0.0
+        self._segment = 0

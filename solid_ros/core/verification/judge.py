@@ -8,8 +8,10 @@ with it into ``candidates.csv``, the report and the log. Measures are taken on d
 reads only what it needs, so a candidate the cheap rules refuse never pays for the costly
 ones, and the evidence holds what was read (NaN: never needed).
 
-Every threshold is a :class:`Bars` field, derived from the configuration in one place
-(:func:`bars`): a setting, or a named derivation of one documented there.
+Every threshold is a :class:`Bars` field, derived in one place (:func:`bars`) from the
+configuration and from what the run taught about itself
+(:class:`~solid_ros.core.verification.calibration.Learned`): a setting, a named derivation of
+one, or the run's own distribution, each documented there.
 
 The rules run in three stages. ``coarse``: is there anything to register, and did the coarse
 stage align enough structure (cheap, most false candidates stop here). ``fine``: does the
@@ -28,6 +30,7 @@ from typing import Any, Literal
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.reasons import RULE_REASONS, Reason
 from solid_ros.core.results import EVIDENCE_FIELDS, Evidence
+from solid_ros.core.verification.calibration import Learned
 
 __all__ = ['RULES', 'STAGES', 'Bars', 'Measures', 'Rule', 'Verdict', 'bars', 'evidence_of',
            'judge']
@@ -49,6 +52,9 @@ PINNED_DEG = 3.0
 # The consistency restarts turn by at most this much; the rotation they may drift is
 # verify_max_drift_deg per this turn (a restart that did not move must still fail).
 PROBE_DEG = 2.0
+# The conflict bar sits this far above the upper quartile of the run's right alignments'
+# conflict, so the single-object bar (half of it) sits at that quartile.
+CONFLICT_OVER_RIGHT = 2.0
 
 
 @dataclass(frozen=True)
@@ -69,10 +75,16 @@ class Bars:
     pinned_m: float
     pinned_deg: float
     graph_min_constraint: float
+    odom_slack_m: float = math.inf
+    odom_drift_per_m: float = 0.0
+
+    def odom_allowed(self, path_m: float) -> float:
+        """How far a loop may disagree with the odometry over ``path_m`` of path, metres."""
+        return self.odom_slack_m + self.odom_drift_per_m * path_m
 
 
-def bars(config: SolidConfig) -> Bars:
-    """The thresholds of a configuration: the ``verify_*`` settings, and what derives from them.
+def bars(config: SolidConfig, learned: Learned | None = None) -> Bars:
+    """The thresholds of a configuration, and of what the run learned about itself.
 
     - ``known_place_overlap``: ``KNOWN_PLACE_SHARE`` of ``verify_min_overlap``, where the pose
       graph predicted the place.
@@ -82,23 +94,41 @@ def bars(config: SolidConfig) -> Bars:
     - ``pinned_m``, ``pinned_deg``: what a right loop is (``PINNED_M``, ``PINNED_DEG``).
     - ``graph_min_constraint``: ``GRAPH_CONSTRAINT_SHARE`` of ``verify_min_constraint`` for a
       candidate the graph proposed.
+    - ``max_conflict``: ``verify_max_conflict``, or ``CONFLICT_OVER_RIGHT`` times the upper
+      quartile of the conflict of the run's right alignments where that is more (a sensor or
+      scene whose right poses show more conflict than the setting allows: mixed pixels,
+      porous vegetation, moving people).
+    - ``odom_slack_m``, ``odom_drift_per_m``: the odometry check allows ``odom_check_slack_m``
+      plus a drift per metre of path: ``odom_check_drift``, or what the run measured its
+      odometry to drift where that is more (the 90th percentile per metre over a few metres,
+      registration noise included: an upper bound of the drift, which short pairs cannot
+      tell from the noise where the odometry is good).
     """
     c = config
+    drift = c.odom_check_drift
+    max_conflict = c.verify_max_conflict
+    if learned is not None:
+        if math.isfinite(learned.drift_per_m):
+            drift = max(drift, learned.drift_per_m)
+        if math.isfinite(learned.conflict_q75):
+            max_conflict = max(max_conflict, CONFLICT_OVER_RIGHT * learned.conflict_q75)
     return Bars(
         min_coarse_overlap=c.verify_min_coarse_overlap,
         min_overlap=c.verify_min_overlap,
         known_place_overlap=KNOWN_PLACE_SHARE * c.verify_min_overlap,
         max_rmse=c.verify_max_rmse,
-        max_conflict=c.verify_max_conflict,
+        max_conflict=max_conflict,
         min_constraint=c.verify_min_constraint,
         min_spread=c.verify_min_spread,
         single_object_overlap=c.verify_single_object_overlap,
-        single_object_conflict=c.verify_max_conflict / 2.0,
+        single_object_conflict=max_conflict / 2.0,
         max_drift_m=c.verify_max_drift,
         max_drift_deg_per_probe=c.verify_max_drift_deg,
         pinned_m=PINNED_M,
         pinned_deg=PINNED_DEG,
         graph_min_constraint=GRAPH_CONSTRAINT_SHARE * c.verify_min_constraint,
+        odom_slack_m=c.odom_check_slack_m if c.odom_check_drift > 0.0 else math.inf,
+        odom_drift_per_m=drift,
     )
 
 
@@ -175,13 +205,12 @@ RULES: tuple[Rule, ...] = (
          'the structure pins the horizontal position and heading (at a known place with '
          'its own range as the heading lever)'),
     Rule('single_object', 'fine', ('step', 'spread', 'overlap', 'conflict', 'known_place'),
-         lambda m, b: (_flag(m.step) or m.spread >= b.min_spread
+         lambda m, b: (_flag(m.step) or m.spread >= b.min_spread or _flag(m.known_place)
                        or (m.conflict <= b.single_object_conflict
-                           and (m.overlap >= b.single_object_overlap
-                                or _flag(m.known_place)))),
+                           and m.overlap >= b.single_object_overlap)),
          lambda m, b: f'spread {m.spread:.4f} < {b.min_spread:.4f}',
-         'the pose rests on more than one object, or on one with more overlap and less '
-         'conflict (or at a known place); a registered step skips it'),
+         'the pose rests on more than one object, or on one the pose graph predicted, or on '
+         'one with more overlap and half the conflict; a registered step skips it'),
     Rule('unstable', 'fine', ('drift_m', 'drift_deg', 'drift_turn_deg'),
          lambda m, b: (m.drift_m <= b.max_drift_m and m.drift_deg
                        <= b.max_drift_deg_per_probe * m.drift_turn_deg / PROBE_DEG),

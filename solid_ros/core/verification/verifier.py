@@ -56,6 +56,7 @@ from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.geometry import rot_z, yaw_of
 from solid_ros.core.reasons import Reason
 from solid_ros.core.results import Evidence
+from solid_ros.core.verification.calibration import Learned
 from solid_ros.core.verification.covariance import (
     RESIDUAL_SCALE,
     TIGHT_RESIDUAL,
@@ -383,6 +384,7 @@ class Verifier:
 
     def __init__(self, config: SolidConfig) -> None:
         self.config = config
+        self.learned = Learned()
         self.bars: Bars = bars(config)
         self.settings = registration_settings(config)
         self.tight_settings = registration_settings(config, tight=True)
@@ -391,7 +393,12 @@ class Verifier:
     def reconfigure(self, config: SolidConfig) -> None:
         """Use new thresholds (registration settings are read-only and unchanged)."""
         self.config = config
-        self.bars = bars(config)
+        self.bars = bars(config, self.learned)
+
+    def learn(self, learned: Learned) -> None:
+        """Use what the run learned about itself (:mod:`.calibration`) in the thresholds."""
+        self.learned = learned
+        self.bars = bars(self.config, learned)
 
     def is_tight(self, points: npt.ArrayLike) -> bool:
         """Whether a keyframe cloud (levelled, on the configuration's grid) shows a tight
@@ -480,6 +487,16 @@ class Verifier:
             return Verification.refused(verdict, m.T_qm, m.fitness)
         return Verification(True, 'verified', m.T_mq, verdict.evidence, '',
                             m.support.fitness, m.covariance, coarse.alignment.hypothesis)
+
+    def measure(self, query: Query, coarse: CoarseResult, step: bool = False) -> PoseMeasures:
+        """The fine stage from a coarse result that passed, unjudged: the measures of the
+        pose it converged to (the calibration's pairs; ``step``: judged as a registered
+        step)."""
+        assert coarse.source is not None and coarse.alignment is not None
+        query = query if coarse.query is None else coarse.query
+        fine = align_fine(query, coarse.source, coarse.alignment.T_qm, query.settings)
+        return PoseMeasures(self, query, coarse.source, fine.T_qm,
+                            coarse.alignment.coarse_overlap, fine.converged, step)
 
     def covariance(self, sup: Support, query: Query) -> FloatArray | None:
         """The loop covariance of a support (two tight-space keyframes: ``TIGHT_RESIDUAL``)."""

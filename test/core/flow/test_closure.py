@@ -239,3 +239,36 @@ def test_the_back_end_can_be_turned_off_whatever_the_configuration() -> None:
     gated.process(drive.scan(5).points, SEC)
     out = gated.process(drive.scan(6).points, 2 * SEC, OdomSample(2 * SEC, drive.odometry(6)))
     assert not out.scan.keyframe and out.scan.stamp_ns == 2 * SEC and out.scan.pose is not None
+
+
+def _calibrated(odometry: list[np.ndarray], drive: Drive, scans: range) -> LoopDetector:
+    det = LoopDetector(CFG.replace(backend=False))
+    for k, i in enumerate(scans):
+        det.process(drive.scan(i).points, k * SEC, odometry[k])
+    return det
+
+
+def test_the_run_learns_its_right_alignments_and_its_odometrys_drift() -> None:
+    """Consecutive scans 2 m apart along the drive: each keyframe is registered to the one
+    before from the odometry's step; with the drive's odometry those are right alignments,
+    with an odometry that drifts 20 % the calibration measures it and the odometry check
+    allows it."""
+    drive = _drive()
+    scans = range(100, 116)
+    good = [drive.odometry(i) for i in scans]
+    det = _calibrated(good, drive, scans)
+    learned = det.calibration.learned
+    assert learned.tried >= 10 and learned.right >= 10  # then every 5th keyframe
+    assert learned.conflict_q75 < CFG.verify_max_conflict and learned.drift_per_m < 0.05
+    assert det.bars.max_conflict == CFG.verify_max_conflict  # right poses pass the setting
+    assert det.bars.odom_allowed(100.0) == pytest.approx(CFG.odom_check_slack_m
+                                                         + CFG.odom_check_drift * 100.0)
+    # A 20 % scale error: every step is a fifth longer than the registration says.
+    start = good[0][:3, 3]
+    bad = []
+    for T in good:
+        T = T.copy()
+        T[:3, 3] = start + 1.2 * (T[:3, 3] - start)
+        bad.append(T)
+    learned = _calibrated(bad, drive, scans).calibration.learned
+    assert 0.15 < learned.drift_per_m < 0.3

@@ -43,6 +43,19 @@ def test_path_sums_the_straight_lines_between_posed_keyframes() -> None:
     assert path.between(0, 1) is None
 
 
+def test_a_jump_of_the_odometry_is_no_path() -> None:
+    """An odometry reset (or relocalisation) jumps: no path runs across it, so the odometry
+    check does not compare loops across it (a new segment's frame is another frame)."""
+    path = OdometryPath(capacity=10, jump_m=10.0)
+    path.add(0, _pose(0.0, 0.0))
+    path.add(1, _pose(3.0, 0.0))
+    path.add(2, _pose(50.0, 0.0))  # a reset put the sensor 47 m off
+    path.add(3, _pose(52.0, 0.0))
+    assert path.between(0, 1) == pytest.approx(3.0)
+    assert path.between(1, 2) is None and path.between(0, 3) is None
+    assert path.between(2, 3) == pytest.approx(2.0)
+
+
 def test_path_forgets_the_oldest_beyond_capacity() -> None:
     path = OdometryPath(capacity=3)
     for i in range(5):

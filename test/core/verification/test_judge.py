@@ -1,0 +1,109 @@
+"""The one judge: its rule table, its thresholds and the evidence it keeps."""
+
+from __future__ import annotations
+
+import math
+from functools import cached_property
+
+import pytest
+
+from solid_ros.core.config import SolidConfig
+from solid_ros.core.reasons import RULE_REASONS
+from solid_ros.core.results import EVIDENCE_FIELDS
+from solid_ros.core.verification.calibration import Learned
+from solid_ros.core.verification.judge import (
+    KNOWN_PLACE_SHARE,
+    RULES,
+    STAGES,
+    Measures,
+    bars,
+    evidence_of,
+    judge,
+)
+
+CFG = SolidConfig()
+BARS = bars(CFG)
+# A pose that passes every fine rule with the default settings.
+GOOD = dict(converged=1.0, overlap=0.6, rmse=0.05, conflict=0.01, constraint=0.02,
+            spread=0.01, drift_m=0.01, drift_deg=0.1, drift_turn_deg=2.0, pinned_m=0.1,
+            pinned_deg=0.5)
+
+
+def test_every_rule_has_its_own_reason_in_the_vocabulary_order() -> None:
+    reasons = [r.reason for r in RULES]
+    assert len(set(reasons)) == len(reasons)
+    assert tuple(reasons) == RULE_REASONS[1:]  # 'verified' first, then the rules
+    assert [STAGES.index(r.stage) for r in RULES] == sorted(STAGES.index(r.stage) for r in RULES)
+    for rule in RULES:
+        assert set(rule.reads) <= set(EVIDENCE_FIELDS), rule.reason
+        assert rule.doc
+
+
+def test_a_pose_that_passes_every_rule_is_verified_and_keeps_what_was_read() -> None:
+    verdict = judge(Measures(**GOOD), BARS, 'fine')
+    assert verdict.verified and verdict.detail == ''
+    assert verdict.evidence.overlap == 0.6 and verdict.evidence.pinned_deg == 0.5
+    assert math.isnan(verdict.evidence.odom_error_m)  # never given: not measured
+
+
+@pytest.mark.parametrize(('field', 'value', 'reason'), [
+    ('converged', 0.0, 'not_converged'), ('overlap', 0.2, 'overlap'), ('rmse', 0.5, 'rmse'),
+    ('conflict', 0.2, 'conflict'), ('constraint', 0.001, 'constraint'),
+    ('drift_m', 1.0, 'unstable'), ('pinned_deg', 5.0, 'pinned')])
+def test_the_first_failing_rule_names_the_refusal_with_its_reading(
+        field: str, value: float, reason: str) -> None:
+    verdict = judge(Measures(**{**GOOD, field: value}), BARS, 'fine')
+    assert verdict.reason == reason and not verdict.verified
+    assert verdict.detail  # the rule's reading, with the value and the bar
+
+
+def test_a_rule_reads_what_it_needs_and_no_more() -> None:
+    class Counting(Measures):
+        read: list[str] = []
+
+        @cached_property
+        def overlap(self) -> float:
+            self.read.append('overlap')
+            return 0.1
+
+        @cached_property
+        def conflict(self) -> float:  # never reached: the overlap rule refuses first
+            self.read.append('conflict')
+            return 0.0
+
+    m = Counting(converged=1.0)
+    verdict = judge(m, BARS, 'fine')
+    assert verdict.reason == 'overlap' and m.read == ['overlap']
+    assert math.isnan(verdict.evidence.conflict) and verdict.evidence.overlap == 0.1
+    assert evidence_of(m).overlap == 0.1
+
+
+def test_a_known_place_asks_less_overlap_and_no_spread() -> None:
+    low = KNOWN_PLACE_SHARE * CFG.verify_min_overlap + 0.01
+    assert judge(Measures(**{**GOOD, 'overlap': low}), BARS, 'fine').reason == 'overlap'
+    known = {**GOOD, 'overlap': low, 'known_place': 1.0, 'spread': 0.0}
+    assert judge(Measures(**known), BARS, 'fine').verified
+    one_object = {**GOOD, 'spread': 0.0, 'overlap': 0.4}
+    assert judge(Measures(**one_object), BARS, 'fine').reason == 'single_object'
+
+
+def test_context_rules_pass_where_nothing_was_measured_and_refuse_what_disagrees() -> None:
+    assert judge(Measures(), BARS, 'context').verified
+    far = Measures(odom_error_m=12.0, odom_allowed_m=10.0)
+    assert judge(far, BARS, 'context').reason == 'odometry'
+    turned = Measures(graph_turn_deg=20.0, graph_turn_tol_deg=5.0)
+    assert judge(turned, BARS, 'context').reason == 'graph_heading'
+    graph = Measures(graph=1.0, constraint=1.1 * CFG.verify_min_constraint)
+    assert judge(graph, BARS, 'context').reason == 'graph_constraint'
+
+
+def test_the_run_raises_the_conflict_bar_and_the_odometry_allowance_never_lowers_them() -> None:
+    assert bars(CFG, Learned()) == BARS  # nothing learned yet: the settings
+    noisy = bars(CFG, Learned(30, 20, 0.04, 20, 0.5))
+    assert noisy.max_conflict == pytest.approx(0.08) and noisy.single_object_conflict == 0.04
+    assert noisy.odom_allowed(100.0) == pytest.approx(CFG.odom_check_slack_m + 50.0)
+    clean = bars(CFG, Learned(30, 20, 0.001, 20, 0.01))
+    assert clean.max_conflict == CFG.verify_max_conflict
+    assert clean.odom_allowed(100.0) == pytest.approx(CFG.odom_check_slack_m
+                                                      + CFG.odom_check_drift * 100.0)
+    assert bars(CFG.replace(odom_check_drift=0.0)).odom_allowed(1.0) == math.inf
