@@ -26,6 +26,7 @@ from solid_ros.core.odometry.track import nearest_stamp
 from solid_ros.formats.poses import read_times
 from solid_ros.runtime import tune_allocator
 from solid_ros.tools.evaluation import relative_yaws
+from solid_ros.tools.presets import shipped_config
 from solid_ros.tools.replay import ReplayResult, load_config, replay, summary_lines
 from solid_ros.tools.replay import main as replay_main
 
@@ -38,19 +39,6 @@ SENSOR_PARAMS = {'hdl64': 'hdl64.yaml', 'avia_like': 'avia.yaml', 'ouster_like':
 OWN_VERTICAL_FOV = ('ouster_like', 'vlp16_like')
 ROUTE_CHOICES = ('revisits', 'no_revisit')
 SCENE_CHOICES = ('varied', 'lookalike')
-
-
-def shipped_config(name: str) -> Path:
-    """Path of a YAML file shipped in ``config/`` (source tree or ROS share directory)."""
-    local = Path(__file__).resolve().parents[2] / 'config' / name
-    if local.is_file():
-        return local
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        return Path(get_package_share_directory('solid_ros')) / 'config' / name
-    except (ImportError, LookupError, OSError) as err:  # OSError: no AMENT_PREFIX_PATH
-        raise SolidError(f'shipped parameter file {name} not found') from err
 
 
 def _keyframe_scans(result: ReplayResult, times_path: Path) -> npt.NDArray[np.intp]:
