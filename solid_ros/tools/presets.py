@@ -33,7 +33,7 @@ from solid_ros.core.config import (
 from solid_ros.core.errors import SolidError
 
 __all__ = ['CONFIG_DIR', 'MAX_PRESET_KEYS', 'REFERENCE', 'SENSOR_KEYS', 'main', 'render',
-           'render_values', 'shipped_config']
+           'render_values', 'shipped_config', 'value_notes']
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 REFERENCE = 'solid.yaml'  # the file with every setting
@@ -85,7 +85,7 @@ def _value(spec: ParamSpec, value: Any) -> str:
     return str(int(value))
 
 
-def _notes(text: str, values: Mapping[str, Any]) -> dict[str, str]:
+def value_notes(text: str, values: Mapping[str, Any]) -> dict[str, str]:
     """The notes written after values (``    key: value  # note``), by key."""
     import yaml
 
@@ -149,7 +149,7 @@ def render(path: Path, full: bool | None = None) -> str:
     SolidConfig.from_dict(values, strict=False)  # the rules between settings too
     NodeConfig.from_dict(values, strict=False)
     return render_values(header, values, full=path.name == REFERENCE if full is None else full,
-                         notes=_notes(text, values))
+                         notes=value_notes(text, values))
 
 
 def preset_keys(text: str) -> list[str]:

@@ -15,7 +15,7 @@ and reports only settings that waste or distort much of the data:
 - heading: the clouds cover under ``NARROW_DEG`` but ``heading_match`` is ``'full'``.
 
 Each :class:`Finding` is one line with the values to set; :func:`check_line` joins them for
-the node's warning and the replay. :func:`suggest_settings` fits a configuration to the sample
+the node's warning and the replay. :func:`suggest_settings` applies them to a configuration
 (``solid_replay --suggest-params``). Pure numpy over the base modules.
 """
 
@@ -43,7 +43,6 @@ RANGE_FRACTION = 0.2
 CLIP_KEEPS = 0.1
 NARROW_DEG = 180.0
 _EMPTY_BELOW = 1.0 / 3.0
-_KEEP_DEG = 1.0  # a measured bound this close to the configured one keeps it
 _MIN_POINTS = 500
 
 
@@ -188,20 +187,20 @@ def check_line(sample: CloudSample, config: SolidConfig) -> str | None:
 
 
 def suggest_settings(sample: CloudSample, base: SolidConfig) -> dict[str, Any]:
-    """Settings that fit ``base`` to the sampled clouds: the measured vertical field of view
-    (outward to half a degree; a bound of ``base`` within ``_KEEP_DEG`` of the clouds' is
-    kept), then whatever :func:`findings` still asks for.
+    """What to change in ``base`` for the sampled clouds: the settings :func:`findings` asks
+    for, and nothing that the clouds do not contradict (``solid_replay --suggest-params``).
 
     Returns:
-        Only the changed settings (empty when the sample holds too few points).
+        Only the changed settings (empty when nothing contradicts, or the sample holds too
+        few points to tell).
     """
-    view = measure(sample, _mount(base))
-    if view is None:
-        return {}
-    lo, hi = view.elevation_low_deg, view.elevation_high_deg
-    down = base.fov_down_deg if abs(lo - base.fov_down_deg) <= _KEEP_DEG else _down(lo)
-    up = base.fov_up_deg if abs(hi - base.fov_up_deg) <= _KEEP_DEG else _up(hi)
-    out: dict[str, Any] = {'fov_up_deg': max(up, down + 0.5), 'fov_down_deg': down}
-    for finding in findings(sample, base.replace(**out)):
-        out.update(finding.settings)
+    out: dict[str, Any] = {}
+    config = base
+    for _ in range(3):  # a fix may show the next (points kept by a wider range gate)
+        found = findings(sample, config)
+        if not found:
+            break
+        for finding in found:
+            out.update(finding.settings)
+        config = base.replace(**out)
     return {k: v for k, v in out.items() if getattr(base, k) != v}

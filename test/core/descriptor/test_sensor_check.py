@@ -87,11 +87,12 @@ def test_too_few_points_say_nothing() -> None:
     assert suggest_settings(sample, SolidConfig()) == {}
 
 
-def test_suggest_fits_the_field_of_view_and_keeps_close_bounds() -> None:
+def test_suggest_changes_only_what_the_clouds_contradict() -> None:
     assert suggest_settings(_sample(spinning), SolidConfig()) == {
         'fov_up_deg': 15.5, 'fov_down_deg': -15.5}
     assert suggest_settings(_sample(spinning), VLP16) == {}
+    # A Mid-360's view on a VLP-16's settings: the top clamps; -7 deg is inside -15.
     got = suggest_settings(_sample(rosette, width=360.0, down=-7.0, up=52.0), VLP16)
-    assert got == {'fov_up_deg': 52.0, 'fov_down_deg': -7.0}
+    assert got == {'fov_up_deg': 52.0}
     far = suggest_settings(_sample(spinning, far=200.0), VLP16)
     assert far == {'max_range': 200.0, 'max_distance': 200.0}
