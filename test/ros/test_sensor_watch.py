@@ -49,7 +49,7 @@ def test_contradiction_is_one_warning_after_the_first_clouds() -> None:
     level, line = log.lines[0]
     assert level == 'warning' and '\n' not in line
     assert line.startswith('the first 10 clouds contradict the parameters: ')
-    assert 'set fov_up_deg: 15.5, fov_down_deg: -15.5' in line and '16 rings' in line
+    assert 'set fov_up_deg: 15.0, fov_down_deg: -15.0' in line and '16 rings' in line
 
 
 def test_fitting_settings_give_one_info_line() -> None:

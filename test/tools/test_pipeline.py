@@ -231,7 +231,7 @@ def test_first_clouds_are_checked_against_the_settings(vlp16_bag: Path, config: 
     assert bool(log.sensor_check) is contradicts
     if contradicts:
         assert log.sensor_check.startswith('the first 10 clouds contradict the parameters: ')
-        assert log.sensor_check.endswith('set fov_up_deg: 15.5, fov_down_deg: -15.5')
+        assert log.sensor_check.endswith('set fov_up_deg: 15.0, fov_down_deg: -15.0')
 
 
 def test_a_bag_shorter_than_the_sample_is_checked_at_its_end(bag: Path) -> None:

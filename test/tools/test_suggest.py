@@ -54,10 +54,10 @@ def test_a_file_that_does_not_fit_is_changed_with_what_was_measured(tmp_path: Pa
     text = suggest_parameters(bag, params=CONFIG_DIR / 'hdl64.yaml')
     header = ' '.join(line[2:] for line in text.splitlines() if line.startswith('# '))
     assert 'changed where the clouds contradict it: fov_up_deg, fov_down_deg.' in header
-    assert '    fov_up_deg: 15.5  # measured: 99.5% of the returns at or below +15.0 deg ' \
+    assert '    fov_up_deg: 15.0  # measured: 99.5% of the returns at or below +15.0 deg ' \
            '(hdl64.yaml: 2.0)' in text.replace(str(CONFIG_DIR) + '/', '')
     cfg = SolidConfig.from_yaml(_write(tmp_path, text))
-    assert (cfg.fov_up_deg, cfg.fov_down_deg) == (15.5, -15.5)
+    assert (cfg.fov_up_deg, cfg.fov_down_deg) == (15.0, -15.0)
     assert cfg.replace(fov_up_deg=2.0, fov_down_deg=-24.8) == SolidConfig.from_yaml(
         CONFIG_DIR / 'hdl64.yaml')
 

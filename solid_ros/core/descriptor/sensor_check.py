@@ -63,11 +63,12 @@ class Finding:
 
 
 def _up(value: float) -> float:
-    return math.ceil(value * 2.0) / 2.0  # outward to half a degree
+    # Outward to half a degree, after float32 points' last digits are dropped.
+    return math.ceil(round(value, 2) * 2.0) / 2.0
 
 
 def _down(value: float) -> float:
-    return math.floor(value * 2.0) / 2.0
+    return math.floor(round(value, 2) * 2.0) / 2.0
 
 
 def _round_range(value: float) -> float:
@@ -134,12 +135,13 @@ def _elevation_findings(elevation: FloatArray, config: SolidConfig) -> list[Find
     if above > CLAMP_FRACTION:
         why.append(f'{above:.0%} of the points fall into the top elevation bin')
     if below > CLAMP_FRACTION:
-        why.append(f'{below:.0%} into the bottom one')
+        why.append(f'{below:.0%} into the bottom one' if why else
+                   f'{below:.0%} of the points fall into the bottom elevation bin')
     if empty:
         why.append(f'the bins below {lo:+.1f} deg stay empty')
     # Once the span is wrong, fit both ends that the clouds pass or fall short of below.
-    new_up = _up(hi) if hi > up else up
-    new_down = _down(lo) if (lo < down or empty) else down
+    new_up = _up(hi) if round(hi, 2) > up else up
+    new_down = _down(lo) if (round(lo, 2) < down or empty) else down
     if new_up <= new_down:
         new_up = new_down + 0.5
     return [Finding('elevation', f'the clouds reach elevations {lo:+.1f} to {hi:+.1f} deg but '

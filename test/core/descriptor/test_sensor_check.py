@@ -37,12 +37,12 @@ def test_authors_defaults_on_a_vlp16_clamp_the_upper_rings() -> None:
     sample = _sample(spinning)
     (found,) = findings(sample, SolidConfig())
     assert found.topic == 'elevation'
-    assert found.settings == {'fov_up_deg': 15.5, 'fov_down_deg': -15.5}
+    assert found.settings == {'fov_up_deg': 15.0, 'fov_down_deg': -15.0}
     assert 'into the top elevation bin' in found.message and 'stay empty' in found.message
     line = check_line(sample, SolidConfig())
     assert line is not None and '\n' not in line
     assert line.startswith(f'the first {FIRST_CLOUDS} clouds contradict the parameters: ')
-    assert line.endswith('set fov_up_deg: 15.5, fov_down_deg: -15.5')
+    assert line.endswith('set fov_up_deg: 15.0, fov_down_deg: -15.0')
     assert findings(sample, _fixed(sample, SolidConfig())) == []
 
 
@@ -89,10 +89,17 @@ def test_too_few_points_say_nothing() -> None:
 
 def test_suggest_changes_only_what_the_clouds_contradict() -> None:
     assert suggest_settings(_sample(spinning), SolidConfig()) == {
-        'fov_up_deg': 15.5, 'fov_down_deg': -15.5}
+        'fov_up_deg': 15.0, 'fov_down_deg': -15.0}
     assert suggest_settings(_sample(spinning), VLP16) == {}
     # A Mid-360's view on a VLP-16's settings: the top clamps; -7 deg is inside -15.
     got = suggest_settings(_sample(rosette, width=360.0, down=-7.0, up=52.0), VLP16)
     assert got == {'fov_up_deg': 52.0}
     far = suggest_settings(_sample(spinning, far=200.0), VLP16)
     assert far == {'max_range': 200.0, 'max_distance': 200.0}
+
+
+def test_a_sensor_looking_lower_than_the_bins_clamps_into_the_bottom_one() -> None:
+    sample = _sample(spinning, down=-45.0, up=2.0, rings=32)
+    (found,) = findings(sample, SolidConfig())
+    assert 'of the points fall into the bottom elevation bin' in found.message
+    assert found.settings == {'fov_up_deg': 2.0, 'fov_down_deg': -45.0}
