@@ -72,7 +72,7 @@ def _down(value: float) -> float:
 
 
 def _round_range(value: float) -> float:
-    return float(5 * max(1, math.ceil(value / 5.0)))
+    return float(min(5 * max(1, math.ceil(value / 5.0)), 1000))  # the settings' upper limit
 
 
 def _mount(config: SolidConfig) -> FloatArray:

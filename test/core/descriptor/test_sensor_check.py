@@ -103,3 +103,9 @@ def test_a_sensor_looking_lower_than_the_bins_clamps_into_the_bottom_one() -> No
     (found,) = findings(sample, SolidConfig())
     assert 'of the points fall into the bottom elevation bin' in found.message
     assert found.settings == {'fov_up_deg': 2.0, 'fov_down_deg': -45.0}
+
+
+def test_suggested_values_stay_within_the_settings_ranges() -> None:
+    far = suggest_settings(_sample(spinning, far=5000.0), VLP16)
+    assert far == {'max_range': 1000.0, 'max_distance': 1000.0}
+    VLP16.replace(**far)  # valid
