@@ -21,7 +21,7 @@ from typing import Any, ClassVar, TypeVar
 from solid_ros.core.errors import ConfigError
 from solid_ros.core.paramfile import load_yaml_parameters
 
-__all__ = ['ParamSpec', 'SolidConfig', 'NodeConfig', 'check_parameters',
+__all__ = ['GROUPS', 'ParamSpec', 'SolidConfig', 'NodeConfig', 'check_parameters',
            'is_standard_ros_parameter', 'load_parameter_file', 'load_yaml_parameters',
            'param_specs', 'type_message', 'unknown_parameters']
 
@@ -29,6 +29,24 @@ _C = TypeVar('_C', bound='_Schema')
 
 # Parameters every rclpy node accepts besides its own (qos_overrides.<topic>... nests).
 _ROS_STANDARD = frozenset({'use_sim_time', 'start_type_description_service'})
+
+# The settings come in groups, in declaration order: the first setting of each, its heading.
+GROUPS = {
+    'fov_width_deg': 'Descriptor: field of view, ranges, voxel, bins (saved with databases)',
+    'capacity': 'Database',
+    'distance_threshold': 'Query and acceptance',
+    'keyframe_min_sec': 'Keyframes (0 turns a criterion off; all off keeps every scan)',
+    'mount_roll_deg': 'Sensor mounting: R = Rz(yaw) Ry(pitch) Rx(roll) levels the points',
+    'verify': 'Verification by registration',
+    'odom_check_drift': 'Odometry check of loops',
+    'graph_candidates': 'Candidates from the pose graph',
+    'cloud_capacity': 'Keyframe clouds',
+    'backend': 'Back end: pose graph (gtsam iSAM2)',
+    'qos_reliability': 'Node: input, files, diagnostics, markers, map',
+    'map_frame': 'Back end outputs: frames, rates, files',
+    'odometry_source': 'Odometry source and KISS-ICP',
+    'max_points_per_cloud': 'Bounds on the inputs and on peers',
+}
 
 
 @dataclass(frozen=True)
@@ -45,6 +63,8 @@ class ParamSpec:
     read_only: bool = False
     # Whether changing it changes descriptor values (saved databases record these).
     shape: bool = False
+    # Heading of the settings it is declared among (--help and config/solid.yaml use it).
+    group: str = ''
 
     def range_text(self) -> str:
         """Return the allowed values as text for error messages."""
@@ -76,11 +96,13 @@ class _Schema:
     def specs(cls) -> tuple[ParamSpec, ...]:
         """Return one :class:`ParamSpec` per setting, in declaration order."""
         out = []
+        group = ''
         for f in dataclasses.fields(cls):  # type: ignore[arg-type]
             m = f.metadata
             typ = {'float': float, 'int': int, 'str': str, 'bool': bool}[str(f.type)]
+            group = GROUPS.get(f.name, group)
             out.append(ParamSpec(f.name, typ, f.default, m['description'], m['low'], m['high'],
-                                 m['choices'], m['read_only'], m['shape']))
+                                 m['choices'], m['read_only'], m['shape'], group))
         return tuple(out)
 
     def __post_init__(self) -> None:

@@ -9,6 +9,7 @@ by the rule ``solid_replay --params`` uses too
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -120,33 +121,59 @@ def check_parameter_files(args: NodeArguments) -> None:
         raise ConfigError(f'{last}: {problem}')
 
 
+_SYNOPSIS = """\
+usage: solid_node [-h] [--ros-args [--params-file FILE.yaml ...] [-p NAME:=VALUE ...]
+                  [-r points:=TOPIC] [-r odom:=TOPIC] [-r __node:=NAME] [-r __ns:=/NS]]
+
+SOLiD LiDAR loop-closure node: PointCloud2 (and odometry) in, verified loops with a 6-DoF pose
+out. -h, --help prints this and exits without starting ROS.
+Exit status: 0 after SIGINT or shutdown, 1 database cannot be loaded, 2 bad parameter file,
+parameter value or ROS argument.
+
+parameter files (--params-file, several allowed, later ones and -p override earlier ones):
+  ROS 2 layout: "solid_node: ros__parameters: {NAME: VALUE}" ("/**:" blocks apply too).
+  A sensor preset (config/avia.yaml, hdl64.yaml, ...) sets only what the sensor and its use
+  decide; every other parameter takes the default below. config/solid.yaml lists them all.
+  Floats keep a decimal point: ROS 2 rejects 360 for a double parameter (write 360.0).
+  solid_replay BAG --suggest-params prints a preset measured from a bag's first clouds.
+
+remapping (-r FROM:=TO):
+  points:=TOPIC, odom:=TOPIC      the subscriptions below
+  __node:=NAME, __ns:=/NS         the node's name and namespace (the file's block must match)
+
+topics:
+  points (sub)            sensor_msgs/PointCloud2
+  odom (sub, use_odom)    nav_msgs/Odometry
+  ~/loop_candidates (pub) std_msgs/Float64MultiArray, one row per loop
+  ~/loop_markers (pub)    visualization_msgs/MarkerArray, latched (transient local):
+                          the newest marker_max_loops loops
+  /diagnostics (pub)      diagnostic_msgs/DiagnosticArray
+  with backend: ~/path, ~/odometry, ~/map and the map -> odom TF on /tf
+  with odometry_source kiss_icp: ~/kiss/odometry
+
+services:
+  ~/save_database         std_srvs/Trigger: write database_save_path
+  ~/reset                 std_srvs/Trigger: clear the database and the queue
+  with backend: ~/save_map, ~/save_trajectory (into output_directory)
+
+parameters by group: NAME (type, default DEFAULT, allowed RANGE[, read-only]); read-only ones
+are fixed when the node starts, the others may change at runtime (only stricter unless
+allow_runtime_weakening is true):"""
+
+
 def usage() -> str:
-    """The ``solid_node --help`` text: how to run it, parameters, topics and services."""
-    lines = [
-        'usage: solid_node [-h] [--ros-args --params-file FILE.yaml [-p NAME:=VALUE] '
-        '[-r points:=/lidar] [-r odom:=/odometry]]',
-        '',
-        'SOLiD LiDAR loop-closure node: PointCloud2 in, loop candidates with yaw out.',
-        'Exit status: 0 after SIGINT or shutdown, 1 database cannot be loaded, 2 bad parameter',
-        'file, parameter value or ROS argument.',
-        '',
-        'topics:',
-        '  points (sub)            sensor_msgs/PointCloud2 (remap with -r points:=TOPIC)',
-        '  odom (sub, use_odom)    nav_msgs/Odometry (remap with -r odom:=TOPIC)',
-        '  ~/loop_candidates (pub) std_msgs/Float64MultiArray, one row per candidate',
-        '  ~/loop_markers (pub)    visualization_msgs/MarkerArray, latched (transient local):',
-        '                          the newest marker_max_loops loops',
-        '  /diagnostics (pub)      diagnostic_msgs/DiagnosticArray',
-        '',
-        'services:',
-        '  ~/save_database         std_srvs/Trigger: write database_save_path',
-        '  ~/reset                 std_srvs/Trigger: clear the database and the queue',
-        '',
-        'parameters (name, type, default, allowed; * = read-only at runtime):',
-    ]
+    """The ``solid_node --help`` text: how to run it, parameter files and remapping, topics
+    and services, then every parameter by group with its type, default, range, whether it is
+    read-only and its description (all from the schema)."""
+    lines = [_SYNOPSIS]
+    group = ''
     for spec in SolidConfig.specs() + NodeConfig.specs():
-        ro = '*' if spec.read_only else ' '
-        lines.append(f'  {ro}{spec.name} ({spec.type.__name__}, default {spec.default!r}, '
-                     f'{spec.range_text()})')
-        lines.append(f'      {spec.description}')
+        if spec.group != group:
+            group = spec.group
+            lines += ['', f'  {group}']
+        ro = ', read-only' if spec.read_only else ''
+        lines.append(f'    {spec.name} ({spec.type.__name__}, default {spec.default!r}, '
+                     f'allowed {spec.range_text()}{ro})')
+        lines += textwrap.wrap(spec.description, 94, initial_indent=' ' * 8,
+                               subsequent_indent=' ' * 8)
     return '\n'.join(lines)

@@ -79,6 +79,7 @@ from solid_ros.ros.odom_wait import OdometryWait
 from solid_ros.ros.params import apply_changes, changed, declare_all
 from solid_ros.ros.peer_guard import key_file_is_private, load_fleet_key
 from solid_ros.ros.peers import PeerLink, can_renew
+from solid_ros.ros.sensor_watch import SensorWatch
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Stages, Verified
 from solid_ros.ros.stamp_guard import StampGuard
@@ -145,7 +146,8 @@ class SolidNode(Node):
             self._shared, self._health, self._pose_for, self._hand_on, self.get_logger(),
             queue_size=cfg.queue_size, verify=self._solid_cfg.verify,
             use_odom=self._odom is not None or self._kiss is not None,
-            share=self._peers.share if self._peers is not None else None)
+            share=self._peers.share if self._peers is not None else None,
+            sensor=SensorWatch(self._solid_cfg, self.get_logger()))
         self._stages.start()
         self.get_logger().info(
             f'ready: database {self._shared.size} scans, FOV {self._solid_cfg.fov_width_deg} '

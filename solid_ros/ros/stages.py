@@ -29,6 +29,7 @@ from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.results import ScanResult
 from solid_ros.ros.health import WARN_THROTTLE_SEC, InputHealth
+from solid_ros.ros.sensor_watch import SensorWatch
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stats import StageTimings
 from solid_ros.ros.worker import Worker
@@ -86,14 +87,17 @@ class Stages:
         verify: whether the detector verifies (read-only while running).
         use_odom: whether a cloud without odometry counts as such.
         share: sends each keyframe's descriptor to peer robots, if any.
+        sensor: checks the first clouds against the settings, if given.
     """
 
     def __init__(self, shared: SharedDetector, health: InputHealth,
                  pair: Callable[[int, npt.NDArray[np.floating[Any]]], OdomSample | None],
                  hand_on: Callable[[Verified], None],
                  log: Log, *, queue_size: int, verify: bool, use_odom: bool,
-                 share: Callable[[Proposal], None] | None = None) -> None:
+                 share: Callable[[Proposal], None] | None = None,
+                 sensor: SensorWatch | None = None) -> None:
         self.timings = StageTimings()
+        self._sensor = sensor
         self._shared, self._health, self._log = shared, health, log
         self._pair, self._hand_on, self._share = pair, hand_on, share
         self._verify, self._use_odom = verify, use_odom
@@ -155,6 +159,8 @@ class Stages:
 
     def _describe_stage(self, cloud: Cloud) -> None:
         points, stamp_ns = cloud
+        if self._sensor is not None:
+            self._sensor.add(points)
         t0 = time.perf_counter()
         odom = self._pair(stamp_ns, points)
         proposal = self._shared.propose(points, stamp_ns, odom)

@@ -10,9 +10,10 @@ Typical use::
 1.5 % of the path unless ``perfect_odometry=True``; :mod:`solid_ros.sim.odometry`).
 ``write_drive`` writes a drive as a bag with reference poses (the demo's cache,
 :mod:`solid_ros.tools.demo_cache`). Options (all :class:`DriveConfig` fields, also keywords of
-``simulate``): sensor ('hdl64', 'avia_like', 'ouster_like', 'vlp16_like' or a
-:class:`LidarModel`), route ('revisits', 'no_revisit' or crossings), nx / ny, scene ('varied',
-'lookalike'), facade_detail, mount_roll_deg / mount_pitch_deg, perfect_odometry, odom_*.
+``simulate``): sensor ('hdl64', 'avia_like', 'ouster_like', 'vlp16_like', 'mid360_like',
+'hesai_like' or a :class:`LidarModel`), route ('revisits', 'no_revisit' or crossings), nx /
+ny, scene ('varied', 'lookalike'), facade_detail, mount_roll_deg / mount_pitch_deg,
+perfect_odometry, odom_*.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ from solid_ros.sim.lidar import (
     avia_like,
     cast_scan,
     hdl64,
+    hesai_like,
+    mid360_like,
     ouster_like,
     sensor_model,
     vlp16_like,
@@ -51,7 +54,7 @@ __all__ = [
     'DEMO_DEFAULTS', 'DEMO_SENSORS', 'LABELS', 'PRESETS', 'ROUTES', 'SCENE_STYLES',
     'BagSummary', 'Drive', 'DriveConfig', 'LidarModel', 'OdometryDrift', 'Scene', 'SimScan',
     'StreetGrid', 'Trajectory', 'avia_like', 'build_scene', 'build_trajectory', 'cast_scan',
-    'hdl64', 'ouster_like', 'pose_matrix', 'read_kitti_poses',
+    'hdl64', 'hesai_like', 'mid360_like', 'ouster_like', 'pose_matrix', 'read_kitti_poses',
     'revisit_labels', 'sensor_model', 'serpentine', 'simulate', 'vlp16_like', 'write_bag',
     'write_drive',
 ]

@@ -29,7 +29,14 @@ from solid_ros.core.errors import BagError
 from solid_ros.formats import poses
 from solid_ros.formats.bags import write_cloud_bag
 from solid_ros.sim.drive import Drive, SimScan
-from solid_ros.sim.lidar import avia_like, hdl64, ouster_like, vlp16_like
+from solid_ros.sim.lidar import (
+    avia_like,
+    hdl64,
+    hesai_like,
+    mid360_like,
+    ouster_like,
+    vlp16_like,
+)
 
 __all__ = ['BagSummary', 'DEMO_DEFAULTS', 'DEMO_SENSORS', 'read_kitti_poses', 'write_bag',
            'write_drive']
@@ -43,7 +50,8 @@ DEMO_DEFAULTS: dict[str, Any] = {'seed': 0, 'sensor': hdl64(points_per_ring=512)
                                  'block': 50.0, 'spacing': 2.0}
 # The 360-degree sensors at 512 points per ring, like the hdl64 demo (Ouster's 512 x 10 mode).
 DEMO_SENSORS = {'hdl64': DEMO_DEFAULTS['sensor'], 'avia_like': avia_like(),
-                'ouster_like': ouster_like(points_per_ring=512), 'vlp16_like': vlp16_like()}
+                'ouster_like': ouster_like(points_per_ring=512), 'vlp16_like': vlp16_like(),
+                'mid360_like': mid360_like(), 'hesai_like': hesai_like()}
 
 
 @dataclass(frozen=True)

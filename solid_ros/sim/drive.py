@@ -35,7 +35,7 @@ START_NS = 1_700_000_000_000_000_000
 # at that value they stay out of the cache key, so an existing cache entry keeps its name.
 _KEY_DEFAULTS: dict[str, Any] = {'scene': 'varied', 'facade_detail': False}
 _SENSOR_KEY_DEFAULTS: dict[str, Any] = {'mount_roll_deg': 0.0, 'mount_pitch_deg': 0.0,
-                                        'edge_mixing': 0.0}
+                                        'edge_mixing': 0.0, 'non_repetitive': False}
 # Already in the key as the sensor model's effective tilt.
 _KEY_OMITTED = ('mount_roll_deg', 'mount_pitch_deg')
 # The odometry's error model; the drives made before it had perfect odometry, which leaves the

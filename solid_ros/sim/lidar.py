@@ -27,8 +27,8 @@ from solid_ros.core.errors import ConfigError
 from solid_ros.core.geometry import rpy_matrix
 from solid_ros.sim.scene import GROUND_REFLECTIVITY, Scene
 
-__all__ = ['LidarModel', 'PRESETS', 'avia_like', 'cast_scan', 'hdl64', 'ouster_like',
-           'sensor_model', 'vlp16_like']
+__all__ = ['LidarModel', 'PRESETS', 'avia_like', 'cast_scan', 'hdl64', 'hesai_like',
+           'mid360_like', 'ouster_like', 'sensor_model', 'vlp16_like']
 
 FloatArray = npt.NDArray[np.float64]
 # A neighbouring ray this much nearer or farther makes a depth edge (``edge_mixing``), metres.
@@ -67,6 +67,10 @@ class LidarModel:
             its column, returned ``EDGE_GAP_M`` nearer or farther) returns a mixed pixel: a
             range drawn uniformly between its own and that neighbour's, a point floating in
             free space (real sensors' footprints straddle edges; Livox's trail behind them).
+        non_repetitive: every column of rays is moved in elevation by its own random
+            fraction of the ring spacing, and the columns together by one in azimuth (noisy
+            scans of a level sensor only): like a Livox rosette, the rays cover the field of
+            view without rings.
     """
 
     name: str
@@ -85,6 +89,7 @@ class LidarModel:
     mount_roll_deg: float = 0.0
     mount_pitch_deg: float = 0.0
     edge_mixing: float = 0.0
+    non_repetitive: bool = False
 
     def __post_init__(self) -> None:
         checks: list[tuple[str, Any, bool, str]] = [
@@ -203,8 +208,28 @@ def vlp16_like(**changes: Any) -> LidarModel:
     return model.replace(**changes) if changes else model
 
 
+def mid360_like(**changes: Any) -> LidarModel:
+    """A 360-degree solid-state LiDAR like the Livox Mid-360: -7 to +52 deg, 40 m.
+
+    The real sensor draws a non-repetitive pattern (about 20k points in 0.1 s); a 64 x 320
+    grid that moves between scans (``non_repetitive``) covers the field of view alike.
+    """
+    model = LidarModel(name='mid360_like', rings=64, fov_up_deg=52.0, fov_down_deg=-7.0,
+                       points_per_ring=320, max_range=40.0, min_range=0.1, non_repetitive=True)
+    return model.replace(**changes) if changes else model
+
+
+def hesai_like(**changes: Any) -> LidarModel:
+    """A 32-beam 360-degree LiDAR like the Hesai PandarXT32: +15 / -16 deg (1 deg apart),
+    120 m, 1 cm range noise; 1000 points per ring (0.36 deg) instead of the real 2000.
+    """
+    model = LidarModel(name='hesai_like', rings=32, fov_up_deg=15.0, fov_down_deg=-16.0,
+                       points_per_ring=1000, max_range=120.0, range_noise=0.01)
+    return model.replace(**changes) if changes else model
+
+
 PRESETS = {'hdl64': hdl64, 'avia_like': avia_like, 'ouster_like': ouster_like,
-           'vlp16_like': vlp16_like}
+           'vlp16_like': vlp16_like, 'mid360_like': mid360_like, 'hesai_like': hesai_like}
 
 
 def sensor_model(sensor: str | LidarModel) -> LidarModel:
@@ -273,8 +298,10 @@ def cast_scan(scene: Scene, model: LidarModel, x: float, y: float, yaw: float,
         ring-major (for a tilted sensor: rings of the level scan it is cut from).
     """
     if not model.tilted:
-        xyz, intensity = _cast_level(scene, model, model.elevations(), model.azimuths(), x, y,
-                                     yaw, rng)
+        phi, alpha = model.elevations(), model.azimuths()
+        if model.non_repetitive and rng is not None:
+            phi, alpha = _shifted_grid(model, phi, alpha, rng)
+        xyz, intensity = _cast_level(scene, model, phi, alpha, x, y, yaw, rng)
     else:
         phi, alpha = _level_grid(model)
         level, intensity = _cast_level(scene, model, phi, alpha, x, y, yaw, rng)
@@ -287,6 +314,19 @@ def cast_scan(scene: Scene, model: LidarModel, x: float, y: float, yaw: float,
     out[:, :3] = xyz
     out[:, 3] = intensity
     return out
+
+
+def _shifted_grid(model: LidarModel, phi: FloatArray, alpha: FloatArray,
+                  rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
+    """This scan's rays of a non-repetitive model: elevations (columns x rings) moved by up
+    to half a ring spacing per column, kept inside the field of view; azimuths moved by up to
+    half a column spacing."""
+    d_el = math.radians(model.fov_up_deg - model.fov_down_deg) / max(model.rings - 1, 1)
+    d_az = math.radians(model.fov_width_deg) / model.points_per_ring
+    lo, hi = math.radians(model.fov_down_deg), math.radians(model.fov_up_deg)
+    shift = d_el * (rng.random(len(alpha)) - 0.5)
+    shifted: FloatArray = np.clip(phi[None, :] + shift[:, None], lo, hi)
+    return shifted, alpha + d_az * (rng.random() - 0.5)
 
 
 def _in_fov(model: LidarModel, xyz: FloatArray) -> npt.NDArray[np.bool_]:
@@ -342,19 +382,22 @@ def _cast_level(scene: Scene, model: LidarModel, phi: FloatArray, alpha: FloatAr
                 ) -> tuple[FloatArray, FloatArray]:
     """Cast a level scan with ring elevations ``phi`` and column azimuths ``alpha`` (radians).
 
+    ``phi`` is one elevation per ring, (R,), or per column and ring, (A, R).
+
     Returns:
         (N, 3) float64 points in the level sensor frame and their (N,) intensities.
     """
     oz = model.mount_height
     theta = alpha + yaw
-    tan_phi = np.tan(phi)
+    tan_phi = np.tan(phi)  # (R,) or (A, R)
     n_a = len(alpha)
     # Horizontal reach of the longest ray, for culling and an early cut.
     reach = model.max_range
     with np.errstate(divide='ignore'):
         ground = np.where(tan_phi < 0.0, -oz / tan_phi, np.inf)
-    dist = np.broadcast_to(ground[None, :], (n_a, len(phi))).copy()  # (A, R) horizontal
-    refl = np.full((n_a, len(phi)), GROUND_REFLECTIVITY)
+    n_r = phi.shape[-1]
+    dist = np.broadcast_to(ground, (n_a, n_r)).copy()  # (A, R) horizontal
+    refl = np.full((n_a, n_r), GROUND_REFLECTIVITY)
 
     boxes, box_refl, cyls, cyl_refl = scene.near(x, y, reach)
     spans = []
@@ -377,7 +420,8 @@ def _cast_level(scene: Scene, model: LidarModel, phi: FloatArray, alpha: FloatAr
 
     # (A, R) -> ring-major rays.
     s = dist.T
-    r3 = s / np.cos(phi)[:, None]
+    cos_rc = np.cos(phi.T if phi.ndim == 2 else phi[:, None])  # (R, A) or (R, 1)
+    r3 = s / cos_rc
     if rng is not None and model.edge_mixing > 0.0:
         r3 = _mixed_pixels(r3, model.edge_mixing, rng)
     valid = (r3 < model.max_range) & (r3 > model.min_range)
@@ -387,11 +431,12 @@ def _cast_level(scene: Scene, model: LidarModel, phi: FloatArray, alpha: FloatAr
     rng_r = r3[ring, col]
     if rng is not None and model.range_noise > 0.0:
         rng_r = rng_r + model.range_noise * rng.standard_normal(len(rng_r))
-    cos_phi = np.cos(phi)[ring]
+    el = phi.T[ring, col] if phi.ndim == 2 else phi[ring]
+    cos_phi = np.cos(el)
     xyz = np.empty((len(ring), 3))
     xyz[:, 0] = rng_r * cos_phi * np.cos(alpha)[col]
     xyz[:, 1] = rng_r * cos_phi * np.sin(alpha)[col]
-    xyz[:, 2] = rng_r * np.sin(phi)[ring]
+    xyz[:, 2] = rng_r * np.sin(el)
     intensity: FloatArray = refl.T[ring, col]
     return xyz, intensity
 
@@ -431,7 +476,7 @@ def _hit_pairs(col: npt.NDArray[np.intp], prim: npt.NDArray[np.intp], s_in: Floa
     a = s_in[prim, col][:, None]  # (P, 1)
     b = s_out[prim, col][:, None]
     lo, hi = z_low[prim][:, None], z_high[prim][:, None]
-    t = tan_phi[None, :]
+    t = tan_phi[col] if tan_phi.ndim == 2 else tan_phi[None, :]
     z_in = oz + a * t  # (P, R) height where the ray crosses into the footprint
     with np.errstate(divide='ignore', invalid='ignore'):
         top = (hi - oz) / t  # where it reaches the roof plane (descending rays)

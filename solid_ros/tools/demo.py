@@ -26,31 +26,19 @@ from solid_ros.core.odometry.track import nearest_stamp
 from solid_ros.formats.poses import read_times
 from solid_ros.runtime import tune_allocator
 from solid_ros.tools.evaluation import relative_yaws
+from solid_ros.tools.presets import shipped_config
 from solid_ros.tools.replay import ReplayResult, load_config, replay, summary_lines
 from solid_ros.tools.replay import main as replay_main
 
 __all__ = ['config_overrides', 'drive_options', 'main', 'revisit_table', 'shipped_config']
 
 PROG = 'solid_demo'
-SENSOR_PARAMS = {'hdl64': 'hdl64.yaml', 'avia_like': 'avia.yaml', 'ouster_like': 'hdl64.yaml',
-                 'vlp16_like': 'hdl64.yaml'}
-# Sensors replayed with another sensor's shipped file take their own vertical FOV into it.
-OWN_VERTICAL_FOV = ('ouster_like', 'vlp16_like')
+# Each simulated sensor and the shipped preset of its class.
+SENSOR_PARAMS = {'hdl64': 'hdl64.yaml', 'avia_like': 'avia.yaml', 'ouster_like': 'ouster.yaml',
+                 'vlp16_like': 'vlp16.yaml', 'mid360_like': 'mid360.yaml',
+                 'hesai_like': 'hesai.yaml'}
 ROUTE_CHOICES = ('revisits', 'no_revisit')
 SCENE_CHOICES = ('varied', 'lookalike')
-
-
-def shipped_config(name: str) -> Path:
-    """Path of a YAML file shipped in ``config/`` (source tree or ROS share directory)."""
-    local = Path(__file__).resolve().parents[2] / 'config' / name
-    if local.is_file():
-        return local
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        return Path(get_package_share_directory('solid_ros')) / 'config' / name
-    except (ImportError, LookupError, OSError) as err:  # OSError: no AMENT_PREFIX_PATH
-        raise SolidError(f'shipped parameter file {name} not found') from err
 
 
 def _keyframe_scans(result: ReplayResult, times_path: Path) -> npt.NDArray[np.intp]:
@@ -117,15 +105,8 @@ def drive_options(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    """Detector settings the command line changes in the parameter file: ``--fov``, and the
-    vertical FOV of a sensor that replays another sensor's shipped file."""
-    from solid_ros.sim.bagwriter import DEMO_SENSORS
-
-    out: dict[str, Any] = {} if args.fov is None else {'fov_width_deg': args.fov}
-    if args.params is None and args.sensor in OWN_VERTICAL_FOV:
-        model = DEMO_SENSORS[args.sensor]
-        out.update(fov_up_deg=model.fov_up_deg, fov_down_deg=model.fov_down_deg)
-    return out
+    """Detector settings the command line changes in the parameter file: ``--fov``."""
+    return {} if args.fov is None else {'fov_width_deg': args.fov}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -138,9 +119,11 @@ def _parser() -> argparse.ArgumentParser:
         'With BAG: the same as solid_replay BAG [options] (see solid_replay --help; e.g. '
         '--odometry kiss-icp).')
     p.add_argument('--sensor', choices=sorted(SENSOR_PARAMS), default='hdl64',
-                   help='simulated sensor: 64-beam 360-degree (hdl64: +2/-24.8 deg, '
-                   'ouster_like: +-22.5 deg), 16-beam 360-degree (vlp16_like) or 70-degree '
-                   'solid-state (avia_like) (default hdl64)')
+                   help='simulated sensor, replayed with the shipped preset of its class: '
+                   '64-beam 360-degree (hdl64: +2/-24.8 deg; ouster_like: +-22.5 deg), 32-beam '
+                   '(hesai_like: +15/-16 deg), 16-beam (vlp16_like: +-15 deg), 70-degree '
+                   'solid-state (avia_like) or 360-degree non-repetitive (mid360_like: '
+                   '-7/+52 deg) (default hdl64)')
     p.add_argument('--route', choices=ROUTE_CHOICES, default='revisits',
                    help='revisits: loops back to earlier places; no_revisit: a 2 km serpentine '
                    'that never returns, every scan new (default revisits)')

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
 
+from solid_ros.core.descriptor.sensor import CloudSample, measure
+from solid_ros.core.descriptor.sensor_check import check_line
 from solid_ros.core.errors import SolidError
 from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector
@@ -106,6 +108,8 @@ class ScanLog:
         posed: decoded scans that got an odometry pose.
         events: log lines by kind (``odometry_reset`` and the back end's event kinds).
         lines: the first log lines, for the report.
+        sensor: what the first clouds show of the sensor ('' before they are read).
+        sensor_check: the line saying where the settings contradict them ('' if nowhere).
     """
 
     messages: int = 0
@@ -120,6 +124,8 @@ class ScanLog:
     posed: int = 0
     events: Counter[str] = field(default_factory=Counter)
     lines: list[str] = field(default_factory=list)
+    sensor: str = ''
+    sensor_check: str = ''
 
     def add(self, record: ScanRecord) -> None:
         """Count one record; keep what scoring needs of a keyframe."""
@@ -215,6 +221,7 @@ class ReplayPipeline:
         self._wrap = wrap_odometry
         self._bag: Bag | None = None
         self._inputs: BagInputs | None = None
+        self._sensor: CloudSample | None = CloudSample()
 
     @property
     def detector(self) -> LoopDetector:
@@ -283,6 +290,8 @@ class ReplayPipeline:
         """One scan: its odometry pose, then the loop closure (detector, back end)."""
         if scan.points is None:
             return ScanRecord(scan.seq, scan.stamp_ns, skipped=scan.error or 'undecodable')
+        if self._sensor is not None:
+            self._sensor.add(scan.points)
         t0 = time.perf_counter()
         odom = (self.odometry.pose_for(scan.stamp_ns, scan.points)
                 if self.odometry is not None else None)
@@ -303,9 +312,25 @@ class ReplayPipeline:
                 log.add(record)
                 for line in record.log_lines():
                     progress.note(line)
+                if self._sensor is not None and self._sensor.complete:
+                    self._check_sensor(log, progress)
                 progress.update(1, skipped=int(record.result is None))
         except BaseException:
             progress.clear()
             raise
+        if self._sensor is not None:  # a bag shorter than the sample
+            self._check_sensor(log, progress)
         progress.close()
         return log
+
+    def _check_sensor(self, log: ScanLog, progress: Progress) -> None:
+        """What the first clouds show, and the node's line where the settings contradict
+        them (:func:`~solid_ros.core.descriptor.sensor_check.check_line`)."""
+        sample, self._sensor = self._sensor, None
+        view = measure(sample) if sample is not None else None
+        if sample is None or view is None:
+            return
+        log.sensor = view.summary()
+        log.sensor_check = check_line(sample, self.closure.config) or ''
+        if log.sensor_check:
+            progress.note(f'sensor check: {log.sensor_check}')

@@ -21,7 +21,8 @@ over the clouds (``--odometry kiss-icp``).
 
 Usage: ``solid_replay BAG [--params FILE.yaml] [--set KEY=VALUE ...] [--topic /points]
 [--odometry bag|kiss-icp] [--odom-topic T | --poses FILE [--times FILE]] [--out DIR [--map]]
-[--load-db F] [--save-db F]``.
+[--load-db F] [--save-db F]``; ``solid_replay BAG --suggest-params [--topic T] [--params F]``
+prints a parameter file for the bag's sensor (:mod:`solid_ros.tools.suggest`).
 """
 
 from __future__ import annotations
@@ -188,6 +189,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--params', metavar='FILE.yaml',
                    help='ROS 2 parameter file as given to the node (default: built-in '
                         "defaults = the SOLiD authors' parameters)")
+    p.add_argument('--suggest-params', action='store_true',
+                   help="print a parameter file for the bag's sensor and exit, without "
+                        'replaying: its first clouds measured (field of view, ranges, rings), '
+                        'the nearest shipped preset (or --params) changed where they '
+                        'contradict it, with comments saying what was measured')
     p.add_argument('--node-name', default='solid_node', metavar='NAME',
                    help='node block read from --params (default: %(default)s)')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
@@ -344,6 +350,21 @@ def _run_fleet(bags: list[str], config: SolidConfig, options: ReplayOptions,
     return 0
 
 
+def _suggest(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """``--suggest-params``: the suggested parameter file on stdout."""
+    if len(args.bag) > 1:
+        parser.error('--suggest-params takes one bag')
+    from solid_ros.tools.suggest import suggest_parameters
+
+    try:
+        text = suggest_parameters(args.bag[0], args.topic, args.params)
+    except SolidError as err:
+        print(f'{PROG}: error: {" ".join(str(err).split())}', file=sys.stderr)
+        return 1
+    sys.stdout.write(text)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``solid_replay``; returns the exit status."""
     parser = build_parser()
@@ -355,6 +376,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error('--map needs --out')
     if args.no_odom and args.odometry is not None:
         parser.error('--no-odom and --odometry exclude each other')
+    if args.suggest_params:
+        return _suggest(args, parser)
     options = _fleet_options(args) if fleet else _options(args)
     tune_allocator()
     try:

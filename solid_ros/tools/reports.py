@@ -115,6 +115,7 @@ def closure_report(inputs: BagInputs, log: ScanLog, closure: LoopClosure, traj: 
                      'posed_scans': log.posed, 'resets': log.events['odometry_reset']},
         'backend': backend,
         'events': {'counts': dict(sorted(log.events.items())), 'lines': log.lines},
+        'sensor': {'measured': log.sensor or None, 'contradiction': log.sensor_check or None},
         'trajectory': errors,
         'keyframes': keyframe_rows(traj),
     }

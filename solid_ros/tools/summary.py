@@ -63,6 +63,11 @@ def _run_lines(r: ReplayResult) -> list[str]:
         f'per scan); keyframe clouds {clouds["kept"]}, {clouds["mb"]:.2f} MB, '
         f'{clouds["dropped"]} dropped',
     ]
+    sensor = rep.get('sensor') or {}
+    if sensor.get('measured'):
+        lines.append(f'  sensor            {sensor["measured"]}')
+    if sensor.get('contradiction'):
+        lines.append(f'  sensor check      {sensor["contradiction"]}')
     return lines
 
 

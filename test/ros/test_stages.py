@@ -14,6 +14,7 @@ from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.ros.health import InputHealth
+from solid_ros.ros.sensor_watch import SensorWatch
 from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stages import Stages, Verified
 
@@ -55,8 +56,8 @@ def every_other(stamp_ns: int, points: object) -> OdomSample | None:
 
 
 def run(config: SolidConfig, clouds: list[tuple[np.ndarray, int]], use_odom: bool = True,
-        pair: Callable[[int, Any], OdomSample | None] = every_other, commit: bool = False
-        ) -> tuple[list[Verified], InputHealth, Log, list[str]]:
+        pair: Callable[[int, Any], OdomSample | None] = every_other, commit: bool = False,
+        sensor_clouds: int | None = None) -> tuple[list[Verified], InputHealth, Log, list[str]]:
     """The stages over ``clouds``; with ``commit`` each keyframe is committed to the loop
     closure's back end after it is handed on, as the node does."""
     shared = SharedDetector(LoopClosure(LoopDetector(config)))
@@ -72,8 +73,9 @@ def run(config: SolidConfig, clouds: list[tuple[np.ndarray, int]], use_odom: boo
         if commit:
             shared.commit(v.proposal, v.result, v.odom, v.detector)
 
+    sensor = (SensorWatch(config, log, sensor_clouds) if sensor_clouds is not None else None)
     stages = Stages(shared, health, pair, hand_on, log, queue_size=100, verify=config.verify,
-                    use_odom=use_odom)
+                    use_odom=use_odom, sensor=sensor)
     stages.start()
     try:
         for cloud in clouds:
@@ -156,3 +158,16 @@ def test_unusable_clouds_are_rejected_and_failures_counted_the_stages_go_on() ->
     assert (health.stats.processed, health.stats.rejected, health.stats.failed) == (2, 1, 0)
     assert [level for level, _ in log.lines] == ['warning']
     assert log.lines[0][1].startswith('rejected PointCloud2 on /points: no usable point')
+
+
+def test_the_describe_thread_checks_the_first_clouds_once() -> None:
+    # Points up to 25 deg above the sensor: the authors' +2 deg top bin takes most of them.
+    rng = np.random.default_rng(5)
+    pts = scene()
+    tall = np.concatenate([pts, pts * [1.0, 1.0, 0.0] + [0.0, 0.0, 1.0] * rng.uniform(
+        0.0, 0.45, (len(pts), 1)) * np.hypot(pts[:, :1], pts[:, 1:2])])
+    clouds = [(tall, (i + 1) * SEC) for i in range(4)]
+    out, _, log, _ = run(LOOP_EVERY_SCAN.replace(verify=False), clouds, sensor_clouds=3)
+    assert len(out) == 4
+    assert [level for level, _ in log.lines] == ['warning']
+    assert 'fov_up_deg' in log.lines[0][1]

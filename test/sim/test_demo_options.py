@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from solid_ros.core.config import SolidConfig
 from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, DriveConfig, vlp16_like
 from solid_ros.tools import demo
 
@@ -35,10 +36,11 @@ def test_demo_detector_settings_follow_the_sensor() -> None:
         return demo.config_overrides(demo._parser().parse_args(argv))
 
     assert overrides([]) == {} and overrides(['--fov', '90']) == {'fov_width_deg': 90.0}
-    # hdl64.yaml's +2 / -24.8 deg elevation bins would clip the other 360-degree sensors.
-    assert overrides(['--sensor', 'ouster_like']) == {'fov_up_deg': 22.5, 'fov_down_deg': -22.5}
-    assert overrides(['--sensor', 'vlp16_like', '--fov', '120']) == {
-        'fov_width_deg': 120.0, 'fov_up_deg': 15.0, 'fov_down_deg': -15.0}
-    assert overrides(['--sensor', 'vlp16_like', '--params', 'mine.yaml']) == {}
-    assert overrides(['--sensor', 'avia_like']) == {}
-    assert demo.SENSOR_PARAMS['ouster_like'] == demo.SENSOR_PARAMS['hdl64']
+    assert overrides(['--sensor', 'vlp16_like', '--fov', '120']) == {'fov_width_deg': 120.0}
+    # Every simulated sensor replays with the shipped preset of its class, whose vertical
+    # FOV is the sensor's.
+    assert set(demo.SENSOR_PARAMS) == set(DEMO_SENSORS)
+    for sensor, name in demo.SENSOR_PARAMS.items():
+        cfg = SolidConfig.from_yaml(demo.shipped_config(name))
+        model = DEMO_SENSORS[sensor]
+        assert (cfg.fov_up_deg, cfg.fov_down_deg) == (model.fov_up_deg, model.fov_down_deg)

@@ -13,6 +13,8 @@ from solid_ros.sim import (
     avia_like,
     cast_scan,
     hdl64,
+    hesai_like,
+    mid360_like,
     ouster_like,
     pose_matrix,
     sensor_model,
@@ -67,6 +69,34 @@ def test_preset_rings_and_range(drive: Drive, model: LidarModel) -> None:
     assert rings.min() == pytest.approx(model.fov_down_deg, abs=1e-3)
     assert rings.max() == pytest.approx(model.fov_up_deg, abs=1e-3)
     assert np.linalg.norm(cloud[:, :3], axis=1).max() < model.max_range
+
+
+def test_mid360_and_hesai_presets() -> None:
+    m, h = mid360_like(), hesai_like()
+    assert (m.rings, m.fov_up_deg, m.fov_down_deg, m.fov_width_deg, m.max_range,
+            m.non_repetitive) == (64, 52.0, -7.0, 360.0, 40.0, True)
+    assert (h.rings, h.fov_up_deg, h.fov_down_deg, h.points_per_ring, h.max_range) == (
+        32, 15.0, -16.0, 1000, 120.0)
+    assert sensor_model('mid360_like') == m and sensor_model('hesai_like') == h
+    assert not h.non_repetitive and not hdl64().non_repetitive
+
+
+def test_non_repetitive_rays_land_on_the_scene_without_rings(drive: Drive) -> None:
+    model = mid360_like(range_noise=0.0, dropout=0.0)
+    x, y = (float(v) for v in drive.trajectory.xy[5])
+    pose = pose_matrix(x, y, model.mount_height, 0.3)
+    scans = [cast_scan(drive.scene, model, x, y, 0.3, np.random.default_rng(k))
+             for k in range(2)]
+    for cloud in scans:
+        assert len(cloud) > 0.3 * model.num_rays
+        assert drive.scene.surface_distance(_to_world(cloud, pose)).max() < 1e-3
+        el, _ = _angles(cloud)
+        assert el.min() >= -7.0 - 1e-3 and el.max() <= 52.0 + 1e-3
+        assert len(np.unique(np.round(el, 3))) > 20 * model.rings  # no rings
+    assert not np.array_equal(_angles(scans[0])[0][:100], _angles(scans[1])[0][:100])
+    # Without noise (no generator) the grid is the regular one, rings and all.
+    el, _ = _angles(cast_scan(drive.scene, model, x, y, 0.3))
+    assert len(np.unique(np.round(el, 3))) <= model.rings
 
 
 TILTED = [

@@ -15,6 +15,7 @@ from solid_ros.core.odometry.track import OdomSample
 from solid_ros.formats.bags import CloudScan, write_cloud_bag
 from solid_ros.tools.options import ReplayOptions
 from solid_ros.tools.pipeline import ReplayPipeline, ScanLog, published_best
+from solid_ros.tools.progress import Progress
 
 # Places 0..4, then 0..2 again; descriptor only, so no registration is needed.
 ROUTE = [0, 1, 2, 3, 4, 0, 1, 2]
@@ -206,3 +207,35 @@ def test_a_clouds_only_bag_gets_keyframes_and_the_back_end_with_kiss_icp(
     assert r.config.backend_step_registration == 'on'
     assert 0 < r.report['backend']['steps'] <= r.keyframes - 1
     assert 'registered steps' in '\n'.join(summary_lines(r))
+
+
+@pytest.fixture(scope='module')
+def vlp16_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Twelve scans of the simulator's VLP-16 (+-15 deg), written as a bag."""
+    from solid_ros.sim import simulate
+
+    items = [(s.points.copy(), T0 + i * 100_000_000, s.pose)
+             for i, s in enumerate(simulate(seed=0, sensor='vlp16_like', num_scans=12))]
+    return write_cloud_bag(tmp_path_factory.mktemp('vlp16') / 'bag', items, 'mcap')
+
+
+@pytest.mark.parametrize('config, contradicts', [
+    (SolidConfig(verify=False), True),  # the authors' +2 / -24.8 deg on a +-15 deg sensor
+    (SolidConfig(verify=False, fov_up_deg=15.0, fov_down_deg=-15.0), False)])
+def test_first_clouds_are_checked_against_the_settings(vlp16_bag: Path, config: SolidConfig,
+                                                       contradicts: bool) -> None:
+    with ReplayPipeline(vlp16_bag, LoopClosure(LoopDetector(config)),
+                        ReplayOptions()) as pipeline:
+        log = pipeline.collect(Progress(12, 'quiet'))
+    assert log.sensor.startswith('360-degree, 16 rings, elevations -15.0 to +15.0 deg')
+    assert bool(log.sensor_check) is contradicts
+    if contradicts:
+        assert log.sensor_check.startswith('the first 10 clouds contradict the parameters: ')
+        assert log.sensor_check.endswith('set fov_up_deg: 15.0, fov_down_deg: -15.0')
+
+
+def test_a_bag_shorter_than_the_sample_is_checked_at_its_end(bag: Path) -> None:
+    with ReplayPipeline(bag, LoopClosure(LoopDetector(CFG)), ReplayOptions()) as pipeline:
+        log = pipeline.collect(Progress(len(ROUTE), 'quiet'))
+    assert log.messages == len(ROUTE) < 10
+    assert f'over {len(ROUTE)} clouds' in log.sensor

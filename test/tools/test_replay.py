@@ -257,6 +257,9 @@ def test_cli_runs_and_prints_summary(tmp_path: Path, bags: dict[str, Path],
     assert report['config']['exclude_recent_frames'] == 3
     assert report['config']['distance_threshold'] == 0.02
     assert report['params_file'] == str(params)
+    # What the first clouds show of the sensor, in the summary and the report.
+    assert '  sensor            360-degree' in out
+    assert report['sensor']['measured'].startswith('360-degree')
 
 
 @pytest.mark.parametrize('argv', [
