@@ -48,7 +48,7 @@ from report import bench_meta, write_report  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
 # Recording -> the shipped preset nearest its sensor.
-PRESETS = {'hku1': 'avia.yaml', 'quickshack': 'avia.yaml', 'riv281': 'hdl64.yaml'}
+PRESETS = {'hku1': 'avia.yaml', 'quickshack': 'avia.yaml', 'riv281': 'ouster.yaml'}
 MAX_M, MAX_DEG = 1.0, 3.0
 
 
