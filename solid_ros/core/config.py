@@ -327,11 +327,14 @@ class SolidConfig(_Schema):
     odom_check_drift: float = _p(0.1, 'Loops within this session must agree with its odometry: '
                                  "the loop's translation may differ from the odometry's by "
                                  'this fraction of the path driven between the two keyframes, '
-                                 'plus odom_check_slack_m (0 turns the check off)', low=0.0,
-                                 high=100.0)
+                                 'plus odom_check_slack_m, until the run has measured its '
+                                 "odometry's drift, which then replaces it (0 turns the check "
+                                 'off)', low=0.0, high=100.0)
     odom_check_slack_m: float = _p(10.0, 'Odometry check: disagreement always allowed, metres '
                                    '(sensor offset from the odometry frame, descriptor-only '
-                                   'loops)', low=0.0, high=1e6)
+                                   "loops); 1 m for verified loops once most of the run's "
+                                   'calibration pairs agreed with the odometry', low=0.0,
+                                   high=1e6)
     graph_candidates: int = _p(3, 'Besides the descriptor candidates, verify up to this many '
                                'earlier keyframes of this session lying near the query in the '
                                "back end's corrected estimate, nearest first, and when none of "
