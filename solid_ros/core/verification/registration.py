@@ -126,6 +126,7 @@ class Query:
         sg = load_small_gicp()
         self.settings = settings
         self._grids: dict[RegistrationSettings, Query] = {}
+        self._thickness: FloatArray | None = None  # plane thickness, NaN: not computed yet
         pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
         self.size = len(pts)
         self.usable = self.size >= _MIN_POINTS
@@ -161,19 +162,31 @@ class Query:
         """Range image of the cloud (computed on first use: most candidates never need it)."""
         return range_image(self.points)
 
-    @cached_property
+    @property
     def plane_thickness(self) -> FloatArray:
         """Per point, the smallest over the middle eigenvalue of its neighbourhood's covariance
         (the points the normal was estimated from): near 0 on a clean plane, near 1 where the
         normal is not defined (a rough or curved surface, a corner, a line of points). small_gicp
         regularises the covariances it keeps, so they are computed afresh here (first use)."""
+        return self.thickness(np.arange(self.size))
+
+    def thickness(self, rows: npt.NDArray[np.intp]) -> FloatArray:
+        """:attr:`plane_thickness` of the points ``rows``, each computed on first use and
+        kept: a loop's covariance reads only its supporting points' (a third to a half of the
+        query's), and each row's value does not depend on which others are computed."""
         if not self.usable:
-            return np.ones(self.size)
-        knn, _ = self.tree.batch_knn_search(self.points, _NEIGHBOURS)
-        nb = self.points[np.asarray(knn, dtype=np.intp)]
-        d = nb - nb.mean(axis=1, keepdims=True)
-        ev = np.linalg.eigvalsh(np.einsum('nki,nkj->nij', d, d))
-        out: FloatArray = ev[:, 0] / np.maximum(ev[:, 1], 1e-12)
+            return np.ones(len(rows))
+        if self._thickness is None:
+            self._thickness = np.full(self.size, np.nan)
+        kept = self._thickness
+        need = np.unique(rows[np.isnan(kept[rows])])
+        if len(need):
+            knn, _ = self.tree.batch_knn_search(self.points[need], _NEIGHBOURS)
+            nb = self.points[np.asarray(knn, dtype=np.intp)]
+            d = nb - nb.mean(axis=1, keepdims=True)
+            ev = np.linalg.eigvalsh(np.einsum('nki,nkj->nij', d, d))
+            kept[need] = ev[:, 0] / np.maximum(ev[:, 1], 1e-12)
+        out: FloatArray = kept[rows]
         return out
 
     def keyframe_cloud(self) -> KeyframeCloud:
@@ -525,12 +538,16 @@ class Support:
         self._near_sq = np.asarray(sq)  # squared distance of each moved point to the query
         self._jac, self._nn, self._residuals = jac, idx[inlier], signed[inlier]
         self.overlap_match = int((inlier & struct_m).sum()) / max(int(struct_m.sum()), 1)
-        # Query structure explained by the candidate: query points mapped into the match frame.
+        # Query structure explained by the candidate: query points mapped into the match frame
+        # (structure first; the rest's nearest neighbours only when the conflict needs them).
         _, tree = source.fine()
-        back = (query.points[query.structure] - T[:3, 3]) @ T[:3, :3]
-        if len(back):
-            _, sq2 = tree.batch_nearest_neighbor_search(back)
-            self.overlap_query = float(np.mean(np.asarray(sq2) < settings.neighbour_distance ** 2))
+        self._back = (query.points[query.structure_first] - T[:3, 3]) @ T[:3, :3]
+        n_struct = query.n_struct
+        self._back_sq = np.zeros(0)
+        if n_struct:
+            _, sq2 = tree.batch_nearest_neighbor_search(self._back[:n_struct])
+            self._back_sq = np.asarray(sq2)
+            self.overlap_query = float(np.mean(self._back_sq < settings.neighbour_distance ** 2))
         else:
             self.overlap_query = 0.0
 
@@ -560,14 +577,17 @@ class Support:
     @cached_property
     def _conflicts(self) -> tuple[float, float]:
         """(coherent, point by point) free-space conflict, the larger direction of each."""
-        query, source, T = self._query, self._source, self._T
+        query, source = self._query, self._source
         margin = self._settings.neighbour_distance
         near = (_EXPLAINED_VOXELS * self._settings.voxel) ** 2
-        back = (query.points[query.structure_first] - T[:3, 3]) @ T[:3, :3]
-        _, tree = source.fine()
-        _, sq = tree.batch_nearest_neighbor_search(back)
+        back = self._back
+        sq = self._back_sq
+        if len(sq) < len(back):
+            _, tree = source.fine()
+            _, rest = tree.batch_nearest_neighbor_search(back[len(sq):])
+            sq = np.concatenate([sq, np.asarray(rest)])
         a = _conflict_masks(self._moved, query.ranges, margin, self._near_sq < near)
-        b = _conflict_masks(back, source.ranges, margin, np.asarray(sq) < near)
+        b = _conflict_masks(back, source.ranges, margin, sq < near)
         coherent = max(_fraction(_coherent(self._moved, a[0], margin, _COHERENT_POINTS), a[1],
                                  source.n_struct) if a[0].any() else 0.0,
                        _fraction(_coherent(back, b[0], margin, _COHERENT_POINTS), b[1],
@@ -604,8 +624,7 @@ class Support:
         the plane: where the neighbourhood is no clean plane (rough or curved surfaces,
         corners, one ring of a sparse sensor) the normal is uncertain and the residual misses
         that error."""
-        w: FloatArray = 1.0 / (1.0 + self._query.plane_thickness[self._nn]
-                               / PLANE_THICKNESS_SCALE)
+        w: FloatArray = 1.0 / (1.0 + self._query.thickness(self._nn) / PLANE_THICKNESS_SCALE)
         return w
 
     @cached_property
