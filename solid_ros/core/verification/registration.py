@@ -371,13 +371,15 @@ def _coherent(points: FloatArray, conflict: npt.NDArray[np.bool_], reach: float,
     a trunk, a column) of points there, while a thin or porous object one scan hit and the
     other missed, a mixed pixel or the sparse pattern of a solid-state sensor leaves scattered
     ones."""
-    from scipy.spatial import cKDTree
-
     idx = np.flatnonzero(conflict)
-    pts = points[idx]
-    counts = cKDTree(pts).query_ball_point(pts, reach, return_length=True)
     out = np.zeros_like(conflict)
-    out[idx[np.asarray(counts) >= together]] = True
+    if len(idx) < together:
+        return out
+    # A point has together - 1 others within reach when its together-th nearest conflicting
+    # point (itself the first) lies within reach: small_gicp's exact kd-tree, no scipy import.
+    pts = np.ascontiguousarray(points[idx])
+    _, sq = load_small_gicp().KdTree(pts).batch_knn_search(pts, together)
+    out[idx[np.asarray(sq)[:, together - 1] <= reach * reach]] = True
     return out
 
 
@@ -679,13 +681,11 @@ def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float)
     """
     if len(points) == 0:
         return 0.0
-    from scipy import ndimage
-
     ij = np.floor(points[:, :2] / cell).astype(np.int64)
     ij -= ij.min(axis=0)
     grid = np.zeros(tuple(ij.max(axis=0) + 1), dtype=bool)
     grid[ij[:, 0], ij[:, 1]] = True
-    labels, count = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))
+    labels, count = _label(grid)
     obj = labels[ij[:, 0], ij[:, 1]] - 1
     total = rows.T @ rows
     sizes = np.bincount(obj, minlength=count)
@@ -694,3 +694,40 @@ def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float)
         part = rows[obj == k]
         worst = min(worst, float(np.linalg.eigvalsh(total - part.T @ part)[0]))
     return worst
+
+
+def _label(grid: npt.NDArray[np.bool_]) -> tuple[npt.NDArray[np.intp], int]:
+    """The 8-connected components of a 2-D grid, numbered 1, 2, ... in the raster order of
+    their first cell (0: empty), and their count: ``scipy.ndimage.label`` with a 3 x 3
+    structure, without importing scipy (half a second of every start-up)."""
+    flat = np.flatnonzero(grid.ravel())
+    labels = np.zeros(grid.shape, dtype=np.intp)
+    if not len(flat):
+        return labels, 0
+    width = grid.shape[1]
+    rows, cols = np.divmod(flat, width)
+    key = (rows + 1) * (width + 2) + cols + 1  # on the grid padded by a cell: no wrap
+    m = len(key)
+    # Each cell's neighbours after it in raster order (right, and the three below).
+    nb = (key[None, :] + np.array([1, width + 1, width + 2, width + 3])[:, None]).ravel()
+    pos = np.minimum(np.searchsorted(key, nb), m - 1)
+    hit = key[pos] == nb
+    a, b = np.tile(np.arange(m), 4)[hit], pos[hit]
+    # Union by the lower index, then pointer jumping, until every pair shares a root: each
+    # cell ends pointing at its component's first cell.
+    root = np.arange(m)
+    while True:
+        ra, rb = root[a], root[b]
+        differ = ra != rb
+        if not differ.any():
+            break
+        np.minimum.at(root, np.maximum(ra[differ], rb[differ]),
+                      np.minimum(ra[differ], rb[differ]))
+        while True:
+            up = root[root]
+            if np.array_equal(up, root):
+                break
+            root = up
+    firsts, number = np.unique(root, return_inverse=True)
+    labels.ravel()[flat] = number.reshape(-1) + 1
+    return labels, len(firsts)
