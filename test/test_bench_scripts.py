@@ -41,3 +41,12 @@ def test_bench_real_scores_a_real_recording(shared_data: Path, tmp_path: Path) -
     report = json.loads((tmp_path / 'real.json').read_text())
     assert report['bench'] == 'bench_real' and report['commit']
     assert report['recordings']['quickshack']['published'] > 0
+
+
+def test_bench_verify_writes_a_markdown_report(shared_data: Path, tmp_path: Path) -> None:
+    out = _bench('bench_verify.py', '--scans', '80', '--no-cpp',
+                 '--report', str(tmp_path / 'verify.md'))
+    assert 'hku1 replay (as shipped)' in out
+    report = (tmp_path / 'verify.md').read_text()
+    assert report.startswith('# bench_verify report')
+    assert '| hku1 replay (as shipped) | avia.yaml | as shipped' in report

@@ -20,9 +20,10 @@ farther, or fewer than ``_MIN_NEIGHBOURS`` around a point) keeps its points.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import maximum_filter, minimum_filter
 
 __all__ = ['drop_mixed_pixels', 'mixed_pixels']
 
@@ -68,9 +69,8 @@ def mixed_pixels(points: npt.ArrayLike) -> npt.NDArray[np.bool_]:
     far = np.full(_N_AZ * _N_EL, -np.inf)
     near[filled] = r[start[:-1][filled]]
     far[filled] = r[start[1:][filled] - 1]
-    modes = ('wrap', 'constant')
-    near = minimum_filter(near.reshape(_N_AZ, _N_EL), 3, mode=modes, cval=np.inf).ravel()
-    far = maximum_filter(far.reshape(_N_AZ, _N_EL), 3, mode=modes, cval=-np.inf).ravel()
+    near = _filter3(near.reshape(_N_AZ, _N_EL), np.minimum).ravel()
+    far = _filter3(far.reshape(_N_AZ, _N_EL), np.maximum).ravel()
     maybe = np.flatnonzero((r - near[cell] > tol) & (far[cell] - r > tol))
     if len(maybe) == 0:
         return out
@@ -86,6 +86,18 @@ def mixed_pixels(points: npt.ArrayLike) -> npt.NDArray[np.bool_]:
             total += start[nb + 1] - start[nb]
     mixed = (same < _MIN_SAME) & (total - 1 >= _MIN_NEIGHBOURS)
     out[ok[maybe[mixed]]] = True
+    return out
+
+
+def _filter3(grid: FloatArray, op: Callable[[FloatArray, FloatArray], FloatArray]
+             ) -> FloatArray:
+    """The 3 x 3 minimum (``op`` np.minimum) or maximum (np.maximum) of each cell, wrapping
+    around in azimuth (axis 0), not beyond the elevation ends: scipy.ndimage's filter with
+    modes ('wrap', 'constant') and the identity as the constant, without importing scipy."""
+    rows = op(grid, op(np.roll(grid, 1, axis=0), np.roll(grid, -1, axis=0)))
+    out: FloatArray = rows.copy()
+    out[:, 1:] = op(out[:, 1:], rows[:, :-1])
+    out[:, :-1] = op(out[:, :-1], rows[:, 1:])
     return out
 
 

@@ -126,6 +126,7 @@ class Query:
         sg = load_small_gicp()
         self.settings = settings
         self._grids: dict[RegistrationSettings, Query] = {}
+        self._thickness: FloatArray | None = None  # plane thickness, NaN: not computed yet
         pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
         self.size = len(pts)
         self.usable = self.size >= _MIN_POINTS
@@ -161,19 +162,31 @@ class Query:
         """Range image of the cloud (computed on first use: most candidates never need it)."""
         return range_image(self.points)
 
-    @cached_property
+    @property
     def plane_thickness(self) -> FloatArray:
         """Per point, the smallest over the middle eigenvalue of its neighbourhood's covariance
         (the points the normal was estimated from): near 0 on a clean plane, near 1 where the
         normal is not defined (a rough or curved surface, a corner, a line of points). small_gicp
         regularises the covariances it keeps, so they are computed afresh here (first use)."""
+        return self.thickness(np.arange(self.size))
+
+    def thickness(self, rows: npt.NDArray[np.intp]) -> FloatArray:
+        """:attr:`plane_thickness` of the points ``rows``, each computed on first use and
+        kept: a loop's covariance reads only its supporting points' (a third to a half of the
+        query's), and each row's value does not depend on which others are computed."""
         if not self.usable:
-            return np.ones(self.size)
-        knn, _ = self.tree.batch_knn_search(self.points, _NEIGHBOURS)
-        nb = self.points[np.asarray(knn, dtype=np.intp)]
-        d = nb - nb.mean(axis=1, keepdims=True)
-        ev = np.linalg.eigvalsh(np.einsum('nki,nkj->nij', d, d))
-        out: FloatArray = ev[:, 0] / np.maximum(ev[:, 1], 1e-12)
+            return np.ones(len(rows))
+        if self._thickness is None:
+            self._thickness = np.full(self.size, np.nan)
+        kept = self._thickness
+        need = np.unique(rows[np.isnan(kept[rows])])
+        if len(need):
+            knn, _ = self.tree.batch_knn_search(self.points[need], _NEIGHBOURS)
+            nb = self.points[np.asarray(knn, dtype=np.intp)]
+            d = nb - nb.mean(axis=1, keepdims=True)
+            ev = np.linalg.eigvalsh(np.einsum('nki,nkj->nij', d, d))
+            kept[need] = ev[:, 0] / np.maximum(ev[:, 1], 1e-12)
+        out: FloatArray = kept[rows]
         return out
 
     def keyframe_cloud(self) -> KeyframeCloud:
@@ -358,13 +371,15 @@ def _coherent(points: FloatArray, conflict: npt.NDArray[np.bool_], reach: float,
     a trunk, a column) of points there, while a thin or porous object one scan hit and the
     other missed, a mixed pixel or the sparse pattern of a solid-state sensor leaves scattered
     ones."""
-    from scipy.spatial import cKDTree
-
     idx = np.flatnonzero(conflict)
-    pts = points[idx]
-    counts = cKDTree(pts).query_ball_point(pts, reach, return_length=True)
     out = np.zeros_like(conflict)
-    out[idx[np.asarray(counts) >= together]] = True
+    if len(idx) < together:
+        return out
+    # A point has together - 1 others within reach when its together-th nearest conflicting
+    # point (itself the first) lies within reach: small_gicp's exact kd-tree, no scipy import.
+    pts = np.ascontiguousarray(points[idx])
+    _, sq = load_small_gicp().KdTree(pts).batch_knn_search(pts, together)
+    out[idx[np.asarray(sq)[:, together - 1] <= reach * reach]] = True
     return out
 
 
@@ -525,12 +540,16 @@ class Support:
         self._near_sq = np.asarray(sq)  # squared distance of each moved point to the query
         self._jac, self._nn, self._residuals = jac, idx[inlier], signed[inlier]
         self.overlap_match = int((inlier & struct_m).sum()) / max(int(struct_m.sum()), 1)
-        # Query structure explained by the candidate: query points mapped into the match frame.
+        # Query structure explained by the candidate: query points mapped into the match frame
+        # (structure first; the rest's nearest neighbours only when the conflict needs them).
         _, tree = source.fine()
-        back = (query.points[query.structure] - T[:3, 3]) @ T[:3, :3]
-        if len(back):
-            _, sq2 = tree.batch_nearest_neighbor_search(back)
-            self.overlap_query = float(np.mean(np.asarray(sq2) < settings.neighbour_distance ** 2))
+        self._back = (query.points[query.structure_first] - T[:3, 3]) @ T[:3, :3]
+        n_struct = query.n_struct
+        self._back_sq = np.zeros(0)
+        if n_struct:
+            _, sq2 = tree.batch_nearest_neighbor_search(self._back[:n_struct])
+            self._back_sq = np.asarray(sq2)
+            self.overlap_query = float(np.mean(self._back_sq < settings.neighbour_distance ** 2))
         else:
             self.overlap_query = 0.0
 
@@ -560,14 +579,17 @@ class Support:
     @cached_property
     def _conflicts(self) -> tuple[float, float]:
         """(coherent, point by point) free-space conflict, the larger direction of each."""
-        query, source, T = self._query, self._source, self._T
+        query, source = self._query, self._source
         margin = self._settings.neighbour_distance
         near = (_EXPLAINED_VOXELS * self._settings.voxel) ** 2
-        back = (query.points[query.structure_first] - T[:3, 3]) @ T[:3, :3]
-        _, tree = source.fine()
-        _, sq = tree.batch_nearest_neighbor_search(back)
+        back = self._back
+        sq = self._back_sq
+        if len(sq) < len(back):
+            _, tree = source.fine()
+            _, rest = tree.batch_nearest_neighbor_search(back[len(sq):])
+            sq = np.concatenate([sq, np.asarray(rest)])
         a = _conflict_masks(self._moved, query.ranges, margin, self._near_sq < near)
-        b = _conflict_masks(back, source.ranges, margin, np.asarray(sq) < near)
+        b = _conflict_masks(back, source.ranges, margin, sq < near)
         coherent = max(_fraction(_coherent(self._moved, a[0], margin, _COHERENT_POINTS), a[1],
                                  source.n_struct) if a[0].any() else 0.0,
                        _fraction(_coherent(back, b[0], margin, _COHERENT_POINTS), b[1],
@@ -604,8 +626,7 @@ class Support:
         the plane: where the neighbourhood is no clean plane (rough or curved surfaces,
         corners, one ring of a sparse sensor) the normal is uncertain and the residual misses
         that error."""
-        w: FloatArray = 1.0 / (1.0 + self._query.plane_thickness[self._nn]
-                               / PLANE_THICKNESS_SCALE)
+        w: FloatArray = 1.0 / (1.0 + self._query.thickness(self._nn) / PLANE_THICKNESS_SCALE)
         return w
 
     @cached_property
@@ -660,13 +681,11 @@ def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float)
     """
     if len(points) == 0:
         return 0.0
-    from scipy import ndimage
-
     ij = np.floor(points[:, :2] / cell).astype(np.int64)
     ij -= ij.min(axis=0)
     grid = np.zeros(tuple(ij.max(axis=0) + 1), dtype=bool)
     grid[ij[:, 0], ij[:, 1]] = True
-    labels, count = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))
+    labels, count = _label(grid)
     obj = labels[ij[:, 0], ij[:, 1]] - 1
     total = rows.T @ rows
     sizes = np.bincount(obj, minlength=count)
@@ -675,3 +694,40 @@ def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float)
         part = rows[obj == k]
         worst = min(worst, float(np.linalg.eigvalsh(total - part.T @ part)[0]))
     return worst
+
+
+def _label(grid: npt.NDArray[np.bool_]) -> tuple[npt.NDArray[np.intp], int]:
+    """The 8-connected components of a 2-D grid, numbered 1, 2, ... in the raster order of
+    their first cell (0: empty), and their count: ``scipy.ndimage.label`` with a 3 x 3
+    structure, without importing scipy (half a second of every start-up)."""
+    flat = np.flatnonzero(grid.ravel())
+    labels = np.zeros(grid.shape, dtype=np.intp)
+    if not len(flat):
+        return labels, 0
+    width = grid.shape[1]
+    rows, cols = np.divmod(flat, width)
+    key = (rows + 1) * (width + 2) + cols + 1  # on the grid padded by a cell: no wrap
+    m = len(key)
+    # Each cell's neighbours after it in raster order (right, and the three below).
+    nb = (key[None, :] + np.array([1, width + 1, width + 2, width + 3])[:, None]).ravel()
+    pos = np.minimum(np.searchsorted(key, nb), m - 1)
+    hit = key[pos] == nb
+    a, b = np.tile(np.arange(m), 4)[hit], pos[hit]
+    # Union by the lower index, then pointer jumping, until every pair shares a root: each
+    # cell ends pointing at its component's first cell.
+    root = np.arange(m)
+    while True:
+        ra, rb = root[a], root[b]
+        differ = ra != rb
+        if not differ.any():
+            break
+        np.minimum.at(root, np.maximum(ra[differ], rb[differ]),
+                      np.minimum(ra[differ], rb[differ]))
+        while True:
+            up = root[root]
+            if np.array_equal(up, root):
+                break
+            root = up
+    firsts, number = np.unique(root, return_inverse=True)
+    labels.ravel()[flat] = number.reshape(-1) + 1
+    return labels, len(firsts)
