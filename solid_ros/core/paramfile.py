@@ -43,8 +43,11 @@ def load_yaml_parameters(path: str | Path, node_name: str = 'solid_node') -> dic
     except UnicodeDecodeError as err:
         raise ConfigError(f'{path}: not a parameter file: byte 0x{blob[err.start]:02x} at '
                           f'offset {err.start} is not UTF-8 text') from err
+    # libyaml's loader where PyYAML has it: the pure-Python scanner is quadratic in the
+    # nesting of flow collections (seconds for a few hundred '{').
+    loader = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=loader)  # noqa: S506 (a safe loader)
     except RecursionError as err:
         raise ConfigError(f'{path}: not valid YAML: nested too deeply') from err
     except (yaml.YAMLError, ValueError, TypeError, OverflowError) as err:
