@@ -18,10 +18,15 @@ def _bench(*args: str) -> str:
     return done.stdout
 
 
-def test_bench_nees_scores_simulated_loops() -> None:
-    out = _bench('bench_nees.py', '--sets', 'indoor', '--scans', '60')
+def test_bench_nees_scores_simulated_loops(tmp_path: Path) -> None:
+    report = tmp_path / 'nees.md'
+    out = _bench('bench_nees.py', '--sets', 'indoor', '--scans', '60', '--report', str(report))
     assert 'published loops' in out
     assert 'vs reference' in out and 'NEES 6-DoF mean' in out
+    # The report is the header and exactly what was printed.
+    text = report.read_text()
+    assert text.startswith('# bench_nees report\n') and '--scans 60' in text
+    assert text.split('```text\n', 1)[1] == out.rstrip('\n') + '\n```\n'
 
 
 def test_bench_generalisation_runs_the_room_with_mixed_pixels() -> None:

@@ -51,6 +51,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / 'test' / 'bench'))
+
+from report import PrintedReport, bench_meta  # noqa: E402
 
 from solid_ros.core.backend.noise import rotation_angle  # noqa: E402
 from solid_ros.core.backend.posegraph import PoseGraph  # noqa: E402
@@ -269,7 +272,14 @@ def main() -> int:
     p.add_argument('--cache', type=Path, default=None)
     p.add_argument('--sim-steps', choices=('on', 'off'), default='on',
                    help='simulated drives also with backend_step_registration on')
+    p.add_argument('--report', type=Path,
+                   help='also write what is printed, with date and commit (.md: doc/reports)')
     args = p.parse_args()
+    with PrintedReport(args.report, bench_meta('bench_backend_replay', vars(args))):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     sections = args.sections.split(',')
     with tempfile.TemporaryDirectory() as tmp:
         db = Path(tmp) / 'hku1_map.npz'

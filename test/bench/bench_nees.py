@@ -56,6 +56,7 @@ sys.path.insert(0, str(ROOT / 'test'))
 sys.path.insert(0, str(ROOT / 'test' / 'bench'))
 
 from bench_generalisation import Case, case_config, case_scans, indoor_case  # noqa: E402
+from report import PrintedReport, bench_meta  # noqa: E402
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
 from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
@@ -243,7 +244,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help='hku1: also against an independent 0.1 m re-registration')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='override a setting of every preset, e.g. verify_covariance_scale=2')
+    p.add_argument('--report', type=Path,
+                   help='also write what is printed, with date and commit (.md: doc/reports)')
     args = p.parse_args(argv)
+    with PrintedReport(args.report, bench_meta('bench_nees', vars(args))):
+        return _run(p, args)
+
+
+def _run(p: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     sets: dict[str, Any] = {}
     for item in args.set:
         key, _, value = item.partition('=')

@@ -61,3 +61,46 @@ def write_report(path: Path, meta: dict[str, Any], columns: list[str],
     lines += ['| ' + ' | '.join(columns) + ' |', '|' + ' --- |' * len(columns)]
     lines += ['| ' + ' | '.join(str(c) for c in row) + ' |' for row in rows]
     path.write_text('\n'.join(lines) + '\n')
+
+
+class PrintedReport:
+    """A report of what a script prints: its stdout, as printed, under the header.
+
+    For the scripts whose figures are a printed table rather than rows: ``with
+    PrintedReport(path, meta):`` around the run tees stdout and, when ``path`` is given,
+    writes the header and the printed text (Markdown: a fenced block; else JSON).
+    """
+
+    def __init__(self, path: Path | None, meta: dict[str, Any]) -> None:
+        self.path, self.meta = path, meta
+        self._parts: list[str] = []
+        self._stdout: Any = None
+
+    def write(self, text: str) -> int:
+        self._parts.append(text)
+        return int(self._stdout.write(text))
+
+    def flush(self) -> None:
+        self._stdout.flush()
+
+    def __enter__(self) -> PrintedReport:
+        self._stdout, sys.stdout = sys.stdout, self  # type: ignore[assignment]
+        return self
+
+    def __exit__(self, kind: Any, *_: Any) -> None:
+        sys.stdout = self._stdout
+        if self.path is None or kind is not None:
+            return
+        import json
+
+        text = ''.join(self._parts)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.suffix != '.md':
+            self.path.write_text(json.dumps(self.meta | {'printed': text}, indent=1) + '\n')
+            return
+        m = self.meta
+        self.path.write_text(
+            f'# {m["bench"]} report\n\nWritten by `test/bench/{m["bench"]}.py` on {m["date"]}, '
+            f'commit `{m["commit"]}`{" (with uncommitted changes)" if m["dirty"] else ""}, '
+            f'{m["machine"]}. Command: `{m["command"]}`. Regenerated, never edited by hand. '
+            'What the script printed:\n\n```text\n' + text.rstrip('\n') + '\n```\n')
