@@ -165,3 +165,20 @@ def test_blocks_of_readme_and_every_doc_file_are_found(tmp_path: Path) -> None:
     # The repository's own files are collected the same way.
     assert markdown_files(ROOT)[0] == ROOT / 'README.md'
     assert any(b.path == ROOT / 'README.md' for b in BLOCKS)
+
+
+_LINK = re.compile(r'\]\(([^)\s#]+)(?:#[^)]*)?\)')
+
+
+def test_relative_links_resolve() -> None:
+    """Every relative link of README.md and doc/ names a file that exists: a page that quotes a
+    bench report links to a report a script wrote, not to one that was never run."""
+    broken = []
+    for md in markdown_files(ROOT):
+        for n, line in enumerate(md.read_text().splitlines(), 1):
+            for target in _LINK.findall(line):
+                if '://' in target or target.startswith('mailto:'):
+                    continue
+                if not (md.parent / target).exists():
+                    broken.append(f'{md.relative_to(ROOT)}:{n}: {target}')
+    assert not broken, '\n'.join(broken)
