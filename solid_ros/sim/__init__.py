@@ -13,7 +13,8 @@ Typical use::
 ``simulate``): sensor ('hdl64', 'avia_like', 'ouster_like', 'vlp16_like', 'mid360_like',
 'hesai_like' or a :class:`LidarModel`), route ('revisits', 'no_revisit' or crossings), nx /
 ny, scene ('varied', 'lookalike'), facade_detail, mount_roll_deg / mount_pitch_deg,
-perfect_odometry, odom_*.
+perfect_odometry, odom_*, and life in the scene, off by default: people and cars (per block,
+moving between scans, :mod:`solid_ros.sim.agents`) and foliage (porous crowns and bushes).
 """
 
 from __future__ import annotations

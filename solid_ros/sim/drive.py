@@ -14,6 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.errors import ConfigError
+from solid_ros.sim.agents import Agents, street_agents
 from solid_ros.sim.lidar import LidarModel, cast_scan, sensor_model
 from solid_ros.sim.odometry import OdometryDrift, drift_planar
 from solid_ros.sim.scene import LOOKALIKE_JITTER, SCENE_STYLES, Scene, StreetGrid, build_scene
@@ -33,7 +34,8 @@ START_NS = 1_700_000_000_000_000_000
 
 # Options added after the first cached demo bags, with the value that reproduces those drives:
 # at that value they stay out of the cache key, so an existing cache entry keeps its name.
-_KEY_DEFAULTS: dict[str, Any] = {'scene': 'varied', 'facade_detail': False}
+_KEY_DEFAULTS: dict[str, Any] = {'scene': 'varied', 'facade_detail': False, 'people': 0.0,
+                                 'cars': 0.0, 'foliage': 0.0}
 _SENSOR_KEY_DEFAULTS: dict[str, Any] = {'mount_roll_deg': 0.0, 'mount_pitch_deg': 0.0,
                                         'edge_mixing': 0.0, 'non_repetitive': False}
 # Already in the key as the sensor model's effective tilt.
@@ -42,6 +44,7 @@ _KEY_OMITTED = ('mount_roll_deg', 'mount_pitch_deg')
 # whole model out of the key (a drifting odometry changes the bag's /odom: another entry).
 _ODOM_KEYS = ('perfect_odometry', 'odom_scale_error', 'odom_heading_bias_deg_per_m',
               'odom_heading_walk_deg', 'odom_position_walk_m')
+_WORLD_RANGES = {'people': (0.0, 50.0), 'cars': (0.0, 20.0), 'foliage': (0.0, 20.0)}
 _ODOM_RANGES = {'odom_scale_error': (-0.5, 0.5), 'odom_heading_bias_deg_per_m': (-10.0, 10.0),
                 'odom_heading_walk_deg': (0.0, 10.0), 'odom_position_walk_m': (0.0, 10.0)}
 
@@ -78,6 +81,13 @@ class DriveConfig:
         odom_heading_bias_deg_per_m: odometry heading bias, degrees per metre driven.
         odom_heading_walk_deg: odometry heading random walk, degrees per sqrt(metre).
         odom_position_walk_m: odometry position random walk, metres per sqrt(metre) on x and y.
+        people: mean number of people walking round each block's sidewalk, coming and going
+            (:func:`~solid_ros.sim.agents.street_agents`); a scan sees them where they are at
+            its stamp, so a revisit sees them elsewhere. 0: an empty town, as before.
+        cars: mean number of cars driving round each block, coming and going; 0: none.
+        foliage: mean free path of a ray in foliage, metres: porous tree crowns and bushes
+            along the sidewalks, hit at other depths and missed in other directions by each
+            scan (:func:`~solid_ros.sim.scene.build_scene`); 0: solid crowns and no bushes.
     """
 
     seed: int = 0
@@ -100,6 +110,9 @@ class DriveConfig:
     odom_heading_bias_deg_per_m: float = 0.015
     odom_heading_walk_deg: float = 0.05
     odom_position_walk_m: float = 0.01
+    people: float = 0.0
+    cars: float = 0.0
+    foliage: float = 0.0
     _model: LidarModel = field(init=False, repr=False, compare=False)
     _crossings: Route = field(init=False, repr=False, compare=False)
     _grid_size: tuple[int, int] = field(init=False, repr=False, compare=False)
@@ -115,7 +128,7 @@ class DriveConfig:
         for key in ('facade_detail', 'perfect_odometry'):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f'{key}: expected true or false, got {getattr(self, key)!r}')
-        for key, (low, high) in _ODOM_RANGES.items():
+        for key, (low, high) in {**_ODOM_RANGES, **_WORLD_RANGES}.items():
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
                     low <= value <= high):
@@ -263,7 +276,30 @@ class Drive:
     def scene(self) -> Scene:
         """The world."""
         c = self.config
-        return build_scene(self.grid, c.seed, style=c.scene, facade_detail=c.facade_detail)
+        return build_scene(self.grid, c.seed, style=c.scene, facade_detail=c.facade_detail,
+                           foliage=c.foliage)
+
+    @cached_property
+    def agents(self) -> Agents:
+        """The people and cars moving through the scene (none by default)."""
+        c = self.config
+        return street_agents(self.grid, c.seed, people=c.people, cars=c.cars)
+
+    def scene_at(self, seconds: float, x: float, y: float) -> Scene:
+        """The scene a scan at (x, y) sees ``seconds`` after the drive's start: the static
+        scene with the agents present then, but for those where the sensor is."""
+        if not len(self.agents):
+            return self.scene
+        return self.scene.with_objects(*self.agents.objects(seconds, x, y))
+
+    def cast(self, index: int, rng: np.random.Generator, stamp_ns: int) -> npt.NDArray[
+            np.float32]:
+        """The cloud of scan ``index`` of the route as cast at ``stamp_ns`` (the agents move
+        with the stamp: a later lap sees them elsewhere)."""
+        t = self.trajectory
+        x, y = float(t.xy[index, 0]), float(t.xy[index, 1])
+        scene = self.scene_at((stamp_ns - START_NS) * 1e-9, x, y)
+        return cast_scan(scene, self.model, x, y, float(t.yaw[index]), rng)
 
     @cached_property
     def trajectory(self) -> Trajectory:
@@ -338,10 +374,9 @@ class Drive:
         if not 0 <= index < len(t):
             raise IndexError(f'scan index {index} outside 0..{len(t) - 1}')
         rng = np.random.default_rng([self.config.seed, index, 0x1D4])
-        cloud = cast_scan(self.scene, self.model, float(t.xy[index, 0]), float(t.xy[index, 1]),
-                          float(t.yaw[index]), rng)
-        return SimScan(index=index, cloud=cloud, pose=self.pose(index),
-                       stamp_ns=self.stamp_ns(index), label=str(t.label[index]),
+        stamp = self.stamp_ns(index)
+        return SimScan(index=index, cloud=self.cast(index, rng, stamp), pose=self.pose(index),
+                       stamp_ns=stamp, label=str(t.label[index]),
                        revisit_of=int(t.revisit_of[index]), odom=self.odometry(index))
 
     def __iter__(self) -> Iterator[SimScan]:
@@ -359,7 +394,8 @@ def simulate(seed: int = 0, sensor: str | LidarModel = 'hdl64', num_scans: int |
         num_scans: stop after this many scans (None: the whole route). Beyond the route's
             length the drive repeats from the start (places revisited again), with new noise.
         **options: further :class:`DriveConfig` fields (block, spacing, speed, route, nx, ny,
-            scene, facade_detail, mount_roll_deg, mount_pitch_deg, perfect_odometry, odom_*).
+            scene, facade_detail, mount_roll_deg, mount_pitch_deg, perfect_odometry, odom_*,
+            people, cars, foliage).
 
     Yields:
         :class:`SimScan` in driving order.
@@ -379,9 +415,6 @@ def simulate(seed: int = 0, sensor: str | LidarModel = 'hdl64', num_scans: int |
         if odom is None:
             odom = drive.odometry_poses(-(-total // n))
         rng = np.random.default_rng([seed, i, lap, 0x1D4])
-        t = drive.trajectory
-        cloud = cast_scan(drive.scene, drive.model, float(t.xy[i, 0]), float(t.xy[i, 1]),
-                          float(t.yaw[i]), rng)
-        yield SimScan(index=k, cloud=cloud, pose=drive.pose(i),
-                      stamp_ns=drive.stamp_ns(i) + lap * period, label='same', revisit_of=i,
-                      odom=odom[k])
+        stamp = drive.stamp_ns(i) + lap * period
+        yield SimScan(index=k, cloud=drive.cast(i, rng, stamp), pose=drive.pose(i),
+                      stamp_ns=stamp, label='same', revisit_of=i, odom=odom[k])

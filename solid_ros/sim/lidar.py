@@ -399,24 +399,25 @@ def _cast_level(scene: Scene, model: LidarModel, phi: FloatArray, alpha: FloatAr
     dist = np.broadcast_to(ground, (n_a, n_r)).copy()  # (A, R) horizontal
     refl = np.full((n_a, n_r), GROUND_REFLECTIVITY)
 
-    boxes, box_refl, cyls, cyl_refl = scene.near(x, y, reach)
+    keep_b, keep_c = scene.near_mask(x, y, reach)
+    boxes, cyls = scene.boxes[keep_b], scene.cylinders[keep_c]
+    free_b, free_c = scene.free_paths()
     spans = []
     if len(boxes):
-        spans.append((*_box_spans(x, y, boxes, theta), boxes[:, 5], boxes[:, 6], box_refl))
+        spans.append((*_box_spans(x, y, boxes, theta), boxes[:, 5], boxes[:, 6],
+                      scene.box_reflectivity[keep_b], free_b[keep_b]))
     if len(cyls):
-        spans.append((*_cylinder_spans(x, y, cyls, theta), cyls[:, 3], cyls[:, 4], cyl_refl))
+        spans.append((*_cylinder_spans(x, y, cyls, theta), cyls[:, 3], cyls[:, 4],
+                      scene.cylinder_reflectivity[keep_c], free_c[keep_c]))
     if spans:
-        s_in = np.concatenate([s[0] for s in spans])
-        s_out = np.concatenate([s[1] for s in spans])
-        z_low = np.concatenate([s[2] for s in spans])
-        z_high = np.concatenate([s[3] for s in spans])
-        prim_refl = np.concatenate([s[4] for s in spans])
+        s_in, s_out, z_low, z_high, prim_refl, free = (
+            np.concatenate([s[k] for s in spans]) for k in range(6))
         s_in = np.maximum(s_in, 0.0)
         hit = (s_out >= s_in) & (s_in < reach)
         col, prim = np.nonzero(hit.T)  # column-major pairs: grouped by azimuth
         if len(col):
-            _hit_pairs(col, prim, s_in, s_out, z_low, z_high, prim_refl, oz, tan_phi, dist,
-                       refl)
+            _hit_pairs(col, prim, (s_in, s_out, z_low, z_high, prim_refl), oz, tan_phi, dist,
+                       refl, (free, rng) if rng is not None and free.any() else None)
 
     # (A, R) -> ring-major rays.
     s = dist.T
@@ -469,10 +470,18 @@ def _mixed_pixels(r3: FloatArray, p: float, rng: np.random.Generator) -> FloatAr
     return out
 
 
-def _hit_pairs(col: npt.NDArray[np.intp], prim: npt.NDArray[np.intp], s_in: FloatArray,
-               s_out: FloatArray, z_low: FloatArray, z_high: FloatArray, prim_refl: FloatArray,
-               oz: float, tan_phi: FloatArray, dist: FloatArray, refl: FloatArray) -> None:
-    """Test heights for the (column, primitive) pairs over all rings; update dist and refl."""
+def _hit_pairs(col: npt.NDArray[np.intp], prim: npt.NDArray[np.intp],
+               prims: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray],
+               oz: float, tan_phi: FloatArray, dist: FloatArray, refl: FloatArray,
+               porous: tuple[FloatArray, np.random.Generator] | None = None) -> None:
+    """Test heights for the (column, primitive) pairs over all rings; update dist and refl.
+
+    ``prims``: per primitive and column, where its footprint is entered and left (s_in,
+    s_out), and per primitive its heights and reflectivity (z_low, z_high, prim_refl).
+    ``porous``: per primitive its free path (see :class:`~solid_ros.sim.scene.Scene`) and the
+    generator that draws how far each ray gets in.
+    """
+    s_in, s_out, z_low, z_high, prim_refl = prims
     a = s_in[prim, col][:, None]  # (P, 1)
     b = s_out[prim, col][:, None]
     lo, hi = z_low[prim][:, None], z_high[prim][:, None]
@@ -487,6 +496,12 @@ def _hit_pairs(col: npt.NDArray[np.intp], prim: npt.NDArray[np.intp], s_in: Floa
     s = np.where(wall, a, np.inf)
     s = np.where(roof, top, s)
     s = np.where(under, bottom, s)
+    if porous is not None:
+        inside = porous[0][prim] > 0.0
+        if inside.any():
+            tp = t[inside] if tan_phi.ndim == 2 else t
+            s[inside] = _into_foliage(s[inside], b[inside], lo[inside], hi[inside], oz, tp,
+                                      porous[0][prim][inside], porous[1])
     starts = np.flatnonzero(np.r_[True, col[1:] != col[:-1]])
     cols = col[starts]
     best = np.minimum.reduceat(s, starts, axis=0)  # (G, R)
@@ -501,3 +516,21 @@ def _hit_pairs(col: npt.NDArray[np.intp], prim: npt.NDArray[np.intp], s_in: Floa
     new_refl[group[pair], ring] = prim_refl[prim[pair]]
     dist[cols] = np.where(closer, best, dist[cols])
     refl[cols] = np.where(closer, new_refl, refl[cols])
+
+
+def _into_foliage(entry: FloatArray, leave: FloatArray, lo: FloatArray, hi: FloatArray,
+                  oz: float, t: FloatArray, free_path: FloatArray,
+                  rng: np.random.Generator) -> FloatArray:
+    """Where rays that enter porous prisms at horizontal distances ``entry`` (pairs x rings)
+    return: an exponential depth of mean ``free_path`` (per pair) along the ray past the
+    entry, or nowhere (inf) when the ray leaves the prism first, through its side (``leave``),
+    its top or its bottom."""
+    with np.errstate(divide='ignore', invalid='ignore'):
+        out_z = np.where(t > 0.0, (hi - oz) / t, np.where(t < 0.0, (lo - oz) / t, np.inf))
+    exit_s = np.minimum(leave, out_z)
+    # Horizontal metres per metre along the ray: the free path is along the ray.
+    level = 1.0 / np.sqrt(1.0 + t * t)
+    depth = rng.exponential(1.0, entry.shape) * free_path[:, None] * level
+    reach = entry + depth
+    out: FloatArray = np.where(np.isfinite(entry) & (reach <= exit_s), reach, np.inf)
+    return out

@@ -138,6 +138,13 @@ class Scene:
         box_reflectivity: (B,) intensity returned by each box, in [0, 1].
         cylinders: (C, 5) rows cx, cy, radius, z_low, z_high.
         cylinder_reflectivity: (C,) intensity returned by each cylinder.
+        box_free_path: (B,) mean free path of a ray inside each box, metres; 0 (or None for
+            all): solid, a ray returns where it enters. Above 0 the box is porous, like
+            foliage: a ray travels an exponentially distributed distance of that mean into it
+            before it returns, and passes through when its path inside is shorter, so each
+            scan hits it at other depths and misses it in other directions (a scan cast
+            without a random generator sees it solid).
+        cylinder_free_path: (C,) the same for the cylinders.
     """
 
     grid: StreetGrid | None
@@ -145,16 +152,49 @@ class Scene:
     box_reflectivity: FloatArray
     cylinders: FloatArray
     cylinder_reflectivity: FloatArray
+    box_free_path: FloatArray | None = None
+    cylinder_free_path: FloatArray | None = None
 
-    def near(self, x: float, y: float, radius: float) -> tuple[FloatArray, FloatArray,
-                                                                FloatArray, FloatArray]:
-        """Return the boxes and cylinders (and reflectivities) reaching within ``radius``."""
+    def near_mask(self, x: float, y: float, radius: float) -> tuple[npt.NDArray[np.bool_],
+                                                                     npt.NDArray[np.bool_]]:
+        """Which boxes and which cylinders reach within ``radius`` of (x, y)."""
         b, c = self.boxes, self.cylinders
         bound_b = np.hypot(b[:, 2], b[:, 3])
         keep_b = np.hypot(b[:, 0] - x, b[:, 1] - y) - bound_b < radius
         keep_c = np.hypot(c[:, 0] - x, c[:, 1] - y) - c[:, 2] < radius
-        return (b[keep_b], self.box_reflectivity[keep_b], c[keep_c],
+        return keep_b, keep_c
+
+    def near(self, x: float, y: float, radius: float) -> tuple[FloatArray, FloatArray,
+                                                                FloatArray, FloatArray]:
+        """Return the boxes and cylinders (and reflectivities) reaching within ``radius``."""
+        keep_b, keep_c = self.near_mask(x, y, radius)
+        return (self.boxes[keep_b], self.box_reflectivity[keep_b], self.cylinders[keep_c],
                 self.cylinder_reflectivity[keep_c])
+
+    def free_paths(self) -> tuple[FloatArray, FloatArray]:
+        """:attr:`box_free_path` and :attr:`cylinder_free_path`, zeros where None."""
+        fb = (np.zeros(len(self.boxes)) if self.box_free_path is None
+              else np.asarray(self.box_free_path, dtype=np.float64))
+        fc = (np.zeros(len(self.cylinders)) if self.cylinder_free_path is None
+              else np.asarray(self.cylinder_free_path, dtype=np.float64))
+        return fb, fc
+
+    def with_objects(self, boxes: FloatArray, box_reflectivity: FloatArray,
+                     cylinders: FloatArray, cylinder_reflectivity: FloatArray) -> Scene:
+        """This scene with more (solid) boxes and cylinders: what a scan sees at one time
+        (the moving people and cars of :mod:`solid_ros.sim.agents`)."""
+        if not len(boxes) and not len(cylinders):
+            return self
+        porous = self.box_free_path is not None or self.cylinder_free_path is not None
+        fb, fc = self.free_paths()
+        return Scene(
+            grid=self.grid, boxes=np.concatenate([self.boxes, np.reshape(boxes, (-1, 7))]),
+            box_reflectivity=np.concatenate([self.box_reflectivity, box_reflectivity]),
+            cylinders=np.concatenate([self.cylinders, np.reshape(cylinders, (-1, 5))]),
+            cylinder_reflectivity=np.concatenate([self.cylinder_reflectivity,
+                                                  cylinder_reflectivity]),
+            box_free_path=np.r_[fb, np.zeros(len(boxes))] if porous else None,
+            cylinder_free_path=np.r_[fc, np.zeros(len(cylinders))] if porous else None)
 
     def surface_distance(self, points: npt.ArrayLike, chunk: int = 4096,
                          ground: bool = True) -> FloatArray:
@@ -244,7 +284,7 @@ def _side_frame(x0: float, x1: float, y0: float, y1: float,
 
 
 def build_scene(grid: StreetGrid | None = None, seed: int = 0, style: str = 'varied',
-                facade_detail: bool = False) -> Scene:
+                facade_detail: bool = False, foliage: float = 0.0) -> Scene:
     """Build a random street scene around ``grid``; the same seed gives the same scene.
 
     Every city block (including one ring of blocks outside the grid) gets buildings of random
@@ -258,14 +298,19 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0, style: str = 'var
             side the same character and furniture style; see the module docstring).
         facade_detail: give buildings recessed entrances, bay fronts and stepped upper floors
             (drawn from a separate random stream: the rest of the scene stays the same).
+        foliage: mean free path of a ray in foliage, metres (see :attr:`Scene.cylinder_free_path`):
+            above 0 the tree crowns are porous and bushes line the sidewalks (their own
+            random stream); 0: solid crowns and no bushes, as before.
 
     Returns:
         The scene.
 
     Raises:
-        ConfigError: unknown style.
+        ConfigError: unknown style, or ``foliage`` out of [0, 20].
     """
     g = grid if grid is not None else StreetGrid()
+    if not 0.0 <= foliage <= 20.0:
+        raise ConfigError(f'foliage: {foliage!r} is out of range; allowed [0, 20]')
     if style not in _STYLES:
         raise ConfigError(f'scene: {style!r} is not a scene style; use one of '
                           f'{", ".join(map(repr, SCENE_STYLES))}')
@@ -276,6 +321,7 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0, style: str = 'var
     cyls: list[list[float]] = []
     cyl_refl: list[float] = []
     fronts: list[tuple[int, float]] = []  # building row, side of its front in the box frame
+    crowns: list[int] = []  # cylinder rows of the tree crowns
 
     for i in range(-1, g.nx):
         for j in range(-1, g.ny):
@@ -320,24 +366,56 @@ def build_scene(grid: StreetGrid | None = None, seed: int = 0, style: str = 'var
                 (a, wa), (b, wb) = cross(seg), cross(seg + 1)
                 for edge in (-1.0, 1.0):
                     _furnish(rng, horizontal, at, width, a + wa, b - wb, edge, boxes, box_refl,
-                             cyls, cyl_refl, st.trees_always)
+                             cyls, cyl_refl, st.trees_always, crowns)
 
     if facade_detail:
         _add_facade_detail(np.random.default_rng([seed, 0xFACADE]), boxes, box_refl, fronts)
+    free: FloatArray | None = None
+    if foliage > 0.0:
+        crowns += _plant_bushes(np.random.default_rng([seed, 0xB05E]), g, cyls, cyl_refl)
+        free = np.zeros(len(cyls))
+        free[crowns] = foliage
 
     return Scene(grid=g, boxes=np.asarray(boxes, dtype=np.float64).reshape(-1, 7),
                  box_reflectivity=np.asarray(box_refl, dtype=np.float64),
                  cylinders=np.asarray(cyls, dtype=np.float64).reshape(-1, 5),
-                 cylinder_reflectivity=np.asarray(cyl_refl, dtype=np.float64))
+                 cylinder_reflectivity=np.asarray(cyl_refl, dtype=np.float64),
+                 cylinder_free_path=free)
+
+
+def _plant_bushes(rng: np.random.Generator, g: StreetGrid, cyls: list[list[float]],
+                  cyl_refl: list[float]) -> list[int]:
+    """Bushes (0.5-1.3 m across, 0.8-2 m high) 2.5-4 m from both kerbs of every road segment,
+    5-25 m apart; return their cylinder rows."""
+    rows = []
+    for horizontal in (True, False):
+        count, span = (g.ny, g.nx) if horizontal else (g.nx, g.ny)
+        road, cross = (g.road_y, g.road_x) if horizontal else (g.road_x, g.road_y)
+        for k in range(count):
+            at, w = road(k)
+            for seg in range(span - 1):
+                (a, wa), (b, wb) = cross(seg), cross(seg + 1)
+                for edge in (-1.0, 1.0):
+                    s = a + wa + float(rng.uniform(0.0, 10.0))
+                    while s < b - wb:
+                        off = at + edge * (w + float(rng.uniform(2.5, 4.0)))
+                        x, y = (s, off) if horizontal else (off, s)
+                        rows.append(len(cyls))
+                        cyls.append([x, y, float(rng.uniform(0.5, 1.3)), 0.0,
+                                     float(rng.uniform(0.8, 2.0))])
+                        cyl_refl.append(float(rng.uniform(0.05, 0.3)))
+                        s += float(rng.uniform(5.0, 25.0))
+    return rows
 
 
 def _furnish(rng: np.random.Generator, horizontal: bool, road: float, w: float,
              start: float, end: float, edge: float, boxes: list[list[float]],
              box_refl: list[float], cyls: list[list[float]], cyl_refl: list[float],
-             trees_always: bool = False) -> None:
+             trees_always: bool = False, crowns: list[int] | None = None) -> None:
     """Add poles, trees and parked cars along one edge (half width ``w``) of a road segment.
 
-    Trees line the edge with probability 1/2, or always with ``trees_always``.
+    Trees line the edge with probability 1/2, or always with ``trees_always``; the crowns'
+    cylinder rows go to ``crowns``.
     """
 
     def at(s: float, offset: float) -> tuple[float, float]:
@@ -355,6 +433,8 @@ def _furnish(rng: np.random.Generator, horizontal: bool, road: float, w: float,
             x, y = at(s, w + 1.8)
             trunk = rng.uniform(2.2, 3.5)
             cyls.append([x, y, rng.uniform(0.15, 0.35), 0.0, trunk])
+            if crowns is not None:
+                crowns.append(len(cyls))
             cyls.append([x, y, rng.uniform(1.2, 2.8), trunk, trunk + rng.uniform(2.0, 5.0)])
             cyl_refl.extend([0.3, float(rng.uniform(0.05, 0.3))])
             s += rng.uniform(7.0, 16.0)

@@ -34,6 +34,18 @@ poses carry the tilt, as a LiDAR-inertial odometry's would); ``room_edges`` and
 (``edge_mixing``, :class:`~solid_ros.sim.lidar.LidarModel`): points floating between a near
 object and what lies behind it, as real sensors return.
 
+Life in the scene (issue 33: real recordings have people, cars and vegetation the static
+streets lacked): ``people``, ``cars`` and ``foliage`` drive the ``avia_like`` revisits
+through varied streets with one part of ``STREET_LIFE`` each (12 people walking and 4 cars
+driving round each block, coming and going; porous tree crowns and bushes a ray gets 1.5 m
+into on average; :mod:`solid_ros.sim.agents`), ``busy`` with all three, beside ``streets``,
+the same drive static (the matrix's ``avia_like/revisits/varied``): the before / after of
+the detector on dynamic scenes. ``streets_walk`` and ``busy_walk`` walk them at 1.4 m/s (a
+scan every 1.4 s instead of 0.2 s: people and cars move between neighbouring keyframes too, as
+in a hand-held recording); ``busy_mid360`` is ``busy`` with ``mid360_like`` and
+``mid360.yaml``; ``room_people`` walks the room with 3 people walking round it and coming and
+going through its doors. A revisit sees the people and cars elsewhere.
+
 Drifting odometry (``--odometry drift``): the scans go through the product's
 :class:`~solid_ros.core.flow.closure.LoopClosure` with the back end on, fed the simulator's
 drifting
@@ -49,12 +61,18 @@ In every mode: the median time to prepare a keyframe (``d_p50``: describe, keyfr
 and in a tight space its mixed pixels dropped).
 
 Usage: ``python test/bench/bench_generalisation.py [--sensors hdl64,avia_like]
-[--routes revisits] [--scenes lookalike] [--extras none|all|NAME,...] [--seed 0]
-[--scans N] [--jobs 1] [--dump DIR] [--json FILE] [--odom-check] [--odometry reference|drift]
-[--drift default|strong] [--set KEY=VALUE ...]``. The full matrix (16 + 7
-cases, about 15,500 scans, each a keyframe) takes about 11 minutes of CPU (about 6 minutes
-with ``--jobs 2``) on an idle machine: simulating a 64-beam scan costs about 20 ms, describing and
-verifying a keyframe 20-50 ms. ``--dump`` writes every candidate looked at, with its test
+[--routes revisits] [--scenes lookalike] [--extras none|all|NAME,...] [--seed 0 | --seeds
+0,1] [--scans N] [--jobs 1] [--dump DIR] [--json FILE] [--report FILE] [--odom-check]
+[--odometry reference|drift] [--drift default|strong] [--set KEY=VALUE ...]``. With several
+seeds each case runs with each, and a table per case over its seeds follows; ``--report``
+writes that table with the date and commit (``doc/reports/bench_generalisation.md``). The
+before / after on dynamic scenes: ``--sensors avia_like --routes revisits --scenes varied
+--extras people,cars,foliage,busy --odometry drift --odom-check --seeds 0,1``. The 16 matrix
+cases and the first ten extras (about 15,500 scans, each a keyframe) take about 11 minutes of
+CPU (about 6 minutes with ``--jobs 2``) on an idle machine: simulating a 64-beam scan costs
+about 20 ms, describing and verifying a keyframe 20-50 ms; the eight street-life cases add
+553 scans each (about a minute and a half each), ``room_people`` a room walk.
+``--dump`` writes every candidate looked at, with its test
 scores and pose error, one CSV per case, and each keyframe's reference pose with whether it
 revisits a place and got a correct loop (``*.keyframes.csv``). Exit status 1 when a case
 falls short of the goal.
@@ -90,6 +108,7 @@ from solid_ros.core.geometry import rpy_matrix  # noqa: E402
 from solid_ros.core.odometry.track import OdomSample  # noqa: E402
 from solid_ros.core.results import EVIDENCE_FIELDS, LoopCandidate  # noqa: E402
 from solid_ros.sim import DEMO_DEFAULTS, DEMO_SENSORS, avia_like, cast_scan, simulate  # noqa: E402
+from solid_ros.sim.agents import room_agents  # noqa: E402
 from solid_ros.sim.drive import START_NS, DriveConfig, pose_matrix  # noqa: E402
 from solid_ros.sim.odometry import drift_planar  # noqa: E402
 from solid_ros.sim.scene import Room, build_room  # noqa: E402
@@ -119,6 +138,13 @@ MAX_ERROR_DEG = 3.0
 # 5 % of bench_backend.py.
 DRIFTS = {'default': {}, 'strong': {'odom_scale_error': 0.01,
                                     'odom_heading_bias_deg_per_m': 0.055}}
+# What real recordings showed and the simulator's streets lacked (issue 33): people and cars
+# moving between scans, porous vegetation (solid_ros.sim.agents, build_scene's foliage):
+# 12 people and 4 cars round each block (about 8 people per 100 m of sidewalk), crowns a ray
+# gets 1.5 m into on average.
+STREET_LIFE: dict[str, Any] = {'people': 12.0, 'cars': 4.0, 'foliage': 1.5}
+WALK = 1.4  # m/s: the streets walked with a hand-held sensor, as the real recordings were
+ROOM_PEOPLE = 3
 
 
 @dataclass(frozen=True)
@@ -165,30 +191,61 @@ def extra_cases() -> dict[str, Case]:
         'room_tilt': indoor_case(tilt_deg=8.0),
         'room_edges': indoor_case(edge_mixing=0.5),
         'room_tilt_edges': indoor_case(tilt_deg=8.0, edge_mixing=0.5),
+        **street_life_cases(),
+        'room_people': indoor_case(people=ROOM_PEOPLE),
     }
 
 
-def indoor_case(fine: bool = False, tilt_deg: float = 0.0, edge_mixing: float = 0.0) -> Case:
+def street_life_cases() -> dict[str, Case]:
+    """The ``avia_like`` revisits through varied streets, static (``streets``, the matrix's
+    ``avia_like/revisits/varied`` under another name, to run beside the others) and with each
+    part of :data:`STREET_LIFE` alone (``people``, ``cars``, ``foliage``) or all three
+    (``busy``); ``streets_walk`` and ``busy_walk`` walk them at :data:`WALK`;
+    ``busy_mid360`` is ``busy`` with ``mid360_like`` and ``mid360.yaml``."""
+    def case(name: str, sensor: str, drive: dict[str, Any]) -> Case:
+        return Case(name, sensor, 'revisits', 'varied', PRESET[sensor], drive)
+
+    walk = {'speed': WALK}
+    out = {'streets': case('avia_like/revisits/varied', 'avia_like', {})}
+    for part, value in STREET_LIFE.items():
+        out[part] = case(f'avia_like/revisits/varied+{part}{value:g}', 'avia_like',
+                         {part: value})
+    out['busy'] = case('avia_like/revisits/varied+busy', 'avia_like', STREET_LIFE)
+    out['streets_walk'] = case('avia_like/revisits/varied@walk', 'avia_like', walk)
+    out['busy_walk'] = case('avia_like/revisits/varied+busy@walk', 'avia_like',
+                            {**STREET_LIFE, **walk})
+    out['busy_mid360'] = case('mid360_like/revisits/varied+busy', 'mid360_like', STREET_LIFE)
+    return out
+
+
+def indoor_case(fine: bool = False, tilt_deg: float = 0.0, edge_mixing: float = 0.0,
+                people: int = 0) -> Case:
     """The handheld walk through the cluttered room with ``avia.yaml`` (its scans are tight:
     registered on 0.25 / 0.75 m, see ``verify_tight_range``; ``fine``: that grid set by hand,
     the tight-space grid off; ``tilt_deg``: the hand's roll and pitch, as in
     :func:`~solid_ros.sim.trajectory.handheld_walk`; ``edge_mixing``: the sensor's mixed pixels
-    at depth edges, see :class:`~solid_ros.sim.lidar.LidarModel`)."""
+    at depth edges, see :class:`~solid_ros.sim.lidar.LidarModel`; ``people``: people walking
+    round the room and coming and going, see :func:`~solid_ros.sim.agents.room_agents`)."""
     over = ({'verify_voxel_size': 0.25, 'verify_coarse_voxel_size': 0.75,
              'verify_tight_range': 0.0} if fine else {})
     name = ('avia_like/handheld/room' + ('@0.25m' if fine else '')
             + (f'+tilt{tilt_deg:g}' if tilt_deg else '')
-            + (f'+edges{edge_mixing:g}' if edge_mixing else ''))
-    # For the room, ``drive`` holds the walk's options and the sensor's edge_mixing.
+            + (f'+edges{edge_mixing:g}' if edge_mixing else '')
+            + (f'+people{people}' if people else ''))
+    # For the room, ``drive`` holds the walk's options, the sensor's edge_mixing and the
+    # number of people.
     drive: dict[str, Any] = {'tilt_deg': tilt_deg} if tilt_deg else {}
     if edge_mixing:
         drive['edge_mixing'] = edge_mixing
+    if people:
+        drive['people'] = people
     return Case(name, 'avia_like', 'handheld', 'room', 'avia.yaml',
                 drive=drive, overrides=over, radius=1.5,
                 max_heading_deg=45.0, revisit_radius=1.5, revisit_path_m=8.0)
 
 
 ROOM_SENSOR = avia_like(min_range=0.5, mount_height=1.4)
+_ROOM_MODEL_KEYS = ('edge_mixing', 'people')
 
 
 def case_scans(case: Case, seed: int, scans: int | None, drift: str = 'default') -> Any:
@@ -202,8 +259,9 @@ def case_scans(case: Case, seed: int, scans: int | None, drift: str = 'default')
             yield scan.points, scan.stamp_ns, scan.pose, scan.odom
         return
     room = Room()
-    walk_options = {k: v for k, v in case.drive.items() if k != 'edge_mixing'}
+    walk_options = {k: v for k, v in case.drive.items() if k not in _ROOM_MODEL_KEYS}
     scene, walk = build_room(room, seed), handheld_walk(room, seed, **walk_options)
+    people = room_agents(room, seed, case.drive.get('people', 0))
     model = ROOM_SENSOR.replace(edge_mixing=case.drive.get('edge_mixing', 0.0))
     model_drift = DriveConfig(**DRIFTS[drift]).drift
     assert model_drift is not None
@@ -219,8 +277,9 @@ def case_scans(case: Case, seed: int, scans: int | None, drift: str = 'default')
             tilt[:3, :3] = rpy_matrix(roll, pitch, 0.0)
             sensor = model.replace(mount_roll_deg=math.degrees(roll),
                                    mount_pitch_deg=math.degrees(pitch))
-        cloud = cast_scan(scene, sensor, x, y, yaw, np.random.default_rng([seed, i, 0x1D4]))
-        # A walking pace: a scan every 0.25 m at 1 m/s.
+        # A walking pace: a scan every 0.25 m at 1 m/s; the people where they are then.
+        here = scene.with_objects(*people.objects(i * 0.25, x, y))
+        cloud = cast_scan(here, sensor, x, y, yaw, np.random.default_rng([seed, i, 0x1D4]))
         yield (cloud[:, :3], START_NS + i * 250_000_000,
                pose_matrix(x, y, model.mount_height, yaw) @ tilt,
                pose_matrix(float(odom_xy[i, 0]), float(odom_xy[i, 1]), model.mount_height,
@@ -255,6 +314,7 @@ class Outcome:
     odometry: str = 'reference'
     keyframes_rows: list[dict[str, Any]] = field(default_factory=list)
     describe_ms: list[float] = field(default_factory=list)
+    seed: int = 0
 
 
 def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None,
@@ -288,7 +348,7 @@ def run_case(case: Case, cfg: SolidConfig, seed: int, scans: int | None,
     seconds = time.perf_counter() - t0
     scores, rows = score_case(case, cfg, np.asarray(poses), attempts, published)
     return Outcome(case, len(poses), scores, dict(det.reasons), seconds, rows, verify_ms,
-                   odometry, keyframe_rows(case, np.asarray(poses), rows), describe_ms)
+                   odometry, keyframe_rows(case, np.asarray(poses), rows), describe_ms, seed)
 
 
 def keyframe_rows(case: Case, ref: np.ndarray, rows: list[dict[str, Any]]
@@ -366,15 +426,16 @@ HEADER = (f'{"case":44s} {"kf":>5s} {"pos":>5s} {"pub":>4s} {"ok":>4s} {"false":
           'verdicts')
 
 
-def row_line(o: Outcome) -> str:
-    """One table line."""
+def row_line(o: Outcome, seeds: int = 1) -> str:
+    """One table line (the case's name with its seed when ``seeds`` > 1)."""
     s = o.scores
     rv = s['revisits']
     graph = s['by_source'].get('graph', {}).get('published', 0)
     v = np.asarray([t for t in o.verify_ms if math.isfinite(t)] or [math.nan])
     d = np.asarray([t for t in o.describe_ms if math.isfinite(t)] or [math.nan])
     verdicts = ' '.join(f'{k}={v}' for k, v in sorted(o.reasons.items(), key=lambda kv: -kv[1]))
-    return (f'{o.case.name:44s} {o.keyframes:5d} {s["queries_with_true_loop"]:5d} '
+    name = o.case.name + (f' s{o.seed}' if seeds > 1 else '')
+    return (f'{name:44s} {o.keyframes:5d} {s["queries_with_true_loop"]:5d} '
             f'{s["published"]:4d} {s["correct"]:4d} {s["false"]:5d} '
             f'{_fmt(s["precision"], ".3f"):>5s} {_fmt(s["recall"], ".3f"):>6s} '
             f'{rv["revisiting"]:5d} {_fmt(rv["recall"], ".3f"):>6s} {graph:5d} '
@@ -383,6 +444,67 @@ def row_line(o: Outcome) -> str:
             f'{_fmt(s.get("nees_mean"), ".2f"):>6s} '
             f'{np.median(d):5.1f} {np.median(v):5.1f} {np.percentile(v, 95):5.1f} '
             f'{o.seconds:5.0f}  {verdicts}')
+
+
+SUMMARY_COLUMNS = ['case', 'seeds', 'keyframes', 'true-loop queries', 'loops', 'correct',
+                   'false', 'precision', 'recall', 'revisit recall', 'by the graph',
+                   'conflict refusals']
+
+
+def summary(outcomes: Sequence[Outcome]) -> list[list[Any]]:
+    """One row per case over its seeds (:data:`SUMMARY_COLUMNS`): counts summed, recall the
+    queries (revisits) with a correct loop over those with a true loop (revisiting)."""
+    by_case: dict[str, list[Outcome]] = {}
+    for o in outcomes:
+        by_case.setdefault(o.case.name, []).append(o)
+    out = []
+    for name, group in by_case.items():
+        n = Counter[str]()
+        for o in group:
+            s = o.scores
+            n.update({'kf': o.keyframes, 'pos': s['queries_with_true_loop'],
+                      'found': s['queries_with_correct_loop'], 'pub': s['published'],
+                      'ok': s['correct'], 'false': s['false'],
+                      'rv': s['revisits']['revisiting'], 'rv_found': s['revisits']['found'],
+                      'graph': s['by_source'].get('graph', {}).get('published', 0),
+                      'conflict': o.reasons.get('conflict', 0)})
+        out.append([name, ','.join(str(o.seed) for o in group), n['kf'], n['pos'], n['pub'],
+                    n['ok'], n['false'],
+                    _fmt(n['ok'] / n['pub'] if n['pub'] else None, '.3f'),
+                    _fmt(n['found'] / n['pos'] if n['pos'] else None, '.3f'),
+                    _fmt(n['rv_found'] / n['rv'] if n['rv'] else None, '.3f'),
+                    n['graph'], n['conflict']])
+    return out
+
+
+def print_summary(rows: list[list[Any]]) -> None:
+    """The per-case rows of :func:`summary` as a plain table."""
+    widths = [max(len(str(r[i])) for r in [SUMMARY_COLUMNS, *rows])
+              for i in range(len(SUMMARY_COLUMNS))]
+    for r in [SUMMARY_COLUMNS, *rows]:
+        print('  '.join(str(c).rjust(w) if i else str(c).ljust(w)
+                        for i, (c, w) in enumerate(zip(r, widths))))
+
+
+def write_case_report(path: Path, args: argparse.Namespace, outcomes: Sequence[Outcome]
+                      ) -> None:
+    """The per-case summary as a report (``test/bench/report.py``; Markdown for
+    ``doc/reports/``, JSON otherwise), with each seed's row in the JSON."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from report import bench_meta, write_report
+
+    meta = bench_meta('bench_generalisation', vars(args))
+    notes = ('Per case, over its seeds: loops published, correct (within '
+             f'{MAX_ERROR_M:g} m / {MAX_ERROR_DEG:g} deg of the reference) and false; recall: '
+             'queries with an earlier keyframe within 5 m outside the exclusion window that got '
+             'a correct loop; revisit recall: keyframes within 5 m of one 30 m of path before; '
+             '"by the graph": loops the pose graph proposed; "conflict refusals": candidates '
+             'the conflict rule refused. Odometry ' + args.odometry
+             + f', odometry check {"on" if args.odom_check else "off"}.')
+    data = {'cases': [{'case': o.case.name, 'seed': o.seed, 'keyframes': o.keyframes,
+                       'reasons': o.reasons, 'shortfalls': verdict(o), **o.scores}
+                      for o in outcomes]}
+    write_report(path, meta, SUMMARY_COLUMNS, summary(outcomes), data, notes)
 
 
 def verdict(o: Outcome) -> list[str]:
@@ -430,11 +552,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument('--extras', default='all',
                    help=f'extra cases: all, none or some of {",".join(extra_cases())}')
     p.add_argument('--seed', type=int, default=0, help='seed of the simulated world')
+    p.add_argument('--seeds', default=None,
+                   help='comma-separated seeds, each case run with each (instead of --seed)')
     p.add_argument('--scans', type=int, default=None, help='at most this many scans per drive')
     p.add_argument('--jobs', type=int, default=1, help='cases run in parallel processes')
     p.add_argument('--dump', type=Path, default=None,
                    help='write every candidate with its scores, one CSV per case, here')
     p.add_argument('--json', type=Path, default=None, help='write the summary as JSON')
+    p.add_argument('--report', type=Path, default=None,
+                   help='write the per-case summary with the date and commit (Markdown for '
+                        'doc/reports/ when it ends in .md, JSON otherwise)')
     p.add_argument('--odom-check', action='store_true',
                    help="keep the preset's odometry check (off by default: the simulated "
                    'odometry is perfect)')
@@ -462,8 +589,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                          pick(args.routes, ROUTES, 'route'),
                          pick(args.scenes, SCENES, 'scene')) + [extras[n] for n in chosen]
     sets = _sets(args.set)
-    print(f'seed {args.seed}, scans {args.scans or "all"}, 512 points per ring for hdl64 and '
-          f'ouster_like; correct = pose within {MAX_ERROR_M:g} m / {MAX_ERROR_DEG:g} deg; '
+    seeds = ([int(t) for t in args.seeds.split(',') if t] if args.seeds is not None
+             else [args.seed])
+    print(f'seed {",".join(map(str, seeds))}, scans {args.scans or "all"}, 512 points per '
+          f'ring for hdl64 and ouster_like; correct = pose within {MAX_ERROR_M:g} m / '
+          f'{MAX_ERROR_DEG:g} deg; '
           f'true loop = earlier keyframe within {RADIUS:g} m outside the exclusion window; '
           f'revisit = earlier keyframe within {REVISIT_RADIUS_M:g} m after '
           f'{REVISIT_MIN_PATH_M:g} m; odometry {args.odometry}'
@@ -473,21 +603,21 @@ def main(argv: Sequence[str] | None = None) -> int:
           flush=True)
     print(HEADER, flush=True)
     # Presets are read once, up front: the run sees one version of the files.
-    jobs = [(c, case_config(c, args.odom_check, sets), args.seed, args.scans, args.odometry,
-             args.drift) for c in cases]
+    jobs = [(c, case_config(c, args.odom_check, sets), seed, args.scans, args.odometry,
+             args.drift) for seed in seeds for c in cases]
     if args.jobs > 1:
         from multiprocessing import Pool
 
         with Pool(args.jobs) as pool:
             outcomes = []
             for o in pool.imap(_job, jobs):
-                print(row_line(o), flush=True)
+                print(row_line(o, len(seeds)), flush=True)
                 outcomes.append(o)
     else:
         outcomes = []
         for job in jobs:
             o = _job(job)
-            print(row_line(o), flush=True)
+            print(row_line(o, len(seeds)), flush=True)
             outcomes.append(o)
     misses = {o.case.name: verdict(o) for o in outcomes if verdict(o)}
     total = Counter[str]()
@@ -499,15 +629,19 @@ def main(argv: Sequence[str] | None = None) -> int:
           + ('every case meets the goal' if not misses else
              'short of the goal: ' + '; '.join(f'{k}: {", ".join(v)}'
                                                for k, v in misses.items())))
+    if len(seeds) > 1:
+        print_summary(summary(outcomes))
+    if args.report is not None:
+        write_case_report(args.report, args, outcomes)
     if args.dump is not None:
         for o in outcomes:
-            stem = o.case.name.replace('/', '_')
+            stem = o.case.name.replace('/', '_') + (f'_s{o.seed}' if len(seeds) > 1 else '')
             _write_rows(args.dump / (stem + '.csv'), o.rows)
             _write_rows(args.dump / (stem + '.keyframes.csv'), o.keyframes_rows)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(
-            [{'case': o.case.name, 'keyframes': o.keyframes, 'seconds': o.seconds,
+            [{'case': o.case.name, 'seed': o.seed, 'keyframes': o.keyframes, 'seconds': o.seconds,
               'reasons': o.reasons, 'shortfalls': verdict(o), 'verify_ms': o.verify_ms,
               'odometry': o.odometry, **o.scores} for o in outcomes],
             indent=1))

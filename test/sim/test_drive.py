@@ -56,7 +56,8 @@ def test_default_drive_is_unchanged() -> None:
     {'route': 'no_revisit'}, {'route': ((0, 0), (2, 0))}, {'nx': 5}, {'scene': 'lookalike'},
     {'facade_detail': True}, {'mount_pitch_deg': 3.0}, {'sensor': 'ouster_like'},
     {'sensor': 'vlp16_like'}, {'perfect_odometry': True}, {'odom_scale_error': 0.02},
-    {'odom_heading_bias_deg_per_m': 0.0}, {'odom_position_walk_m': 0.0}])
+    {'odom_heading_bias_deg_per_m': 0.0}, {'odom_position_walk_m': 0.0}, {'people': 2.0},
+    {'cars': 1.0}, {'foliage': 1.0}])
 def test_every_option_names_another_drive(option: dict[str, object]) -> None:
     assert DriveConfig(**{**DEMO_DEFAULTS, **option}).fingerprint() != DriveConfig(
         **DEMO_DEFAULTS).fingerprint()
