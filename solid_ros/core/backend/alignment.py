@@ -193,33 +193,41 @@ class FleetAlignment:
         """Drop a peer (it left, or the caller bounds the robots it tracks)."""
         self._peers.pop(int(peer), None)
 
-    def solve(self, own: Poses, peers: Mapping[int, Poses]) -> list[BackendEvent]:
+    def solve(self, own: Poses, peers: Mapping[int, Poses],
+              paths: Mapping[int, Mapping[int, float]] | None = None) -> list[BackendEvent]:
         """Decide every peer's alignment again with the maps as they are now.
 
         Args:
             own: this robot's keyframe poses in its map, by index.
             peers: each peer's keyframe poses in its own map, by index.
+            paths: distance driven up to keyframes, by robot and index, where the poses are
+                not every keyframe's (a peer sends only those of its loops'); the others'
+                are :func:`path_lengths` of their poses.
 
         Returns:
             The lines to log: ``'aligned'`` (first placed), ``'jump'`` (placement moved).
         """
         events: list[BackendEvent] = []
-        own_path = path_lengths(own)
+        paths = paths or {}
+        own_path = paths.get(self.robot) or path_lengths(own)
         for peer, entry in self._peers.items():
             theirs = peers.get(peer, {})
-            links = [k for k in entry.links if k.own in own and k.theirs in theirs]
+            their_path = paths.get(peer) or path_lengths(theirs)
+            links = [k for k in entry.links if k.own in own and k.theirs in theirs
+                     and k.own in own_path and k.theirs in their_path]
             if len(links) >= self.settings.min_loops:
-                self._decide(entry, links, own, theirs, own_path, events)
+                self._decide(entry, links, own, theirs, (own_path, their_path), events)
         return events
 
     def _decide(self, entry: _Peer, links: list[_Link], own: Poses, theirs: Poses,
-                own_path: Mapping[int, float], events: list[BackendEvent]) -> None:
+                paths: tuple[Mapping[int, float], Mapping[int, float]],
+                events: list[BackendEvent]) -> None:
         s = self.settings
         X = np.array([own[k.own] for k in links], dtype=np.float64)
         Y = np.array([theirs[k.theirs] for k in links], dtype=np.float64)
         Z = np.array([k.Z for k in links])
         cov_z = np.array([k.cov for k in links])
-        their_path = path_lengths(theirs)
+        own_path, their_path = paths
         sig = cycle_sigmas(X, Z, Y, cov_z, np.array([own_path[k.own] for k in links]),
                            np.array([their_path[k.theirs] for k in links]), s.drift)
         agree = sig <= s.gate

@@ -222,13 +222,15 @@ class LoopClosure:
         back end off, or not such a loop; see :meth:`FleetAlignment.add`)."""
         return self.fleet is not None and self.fleet.add(loop, by=robot)
 
-    def align(self, peers: Mapping[int, Mapping[int, FloatArray]]) -> list[BackendEvent]:
+    def align(self, peers: Mapping[int, Mapping[int, FloatArray]],
+              paths: Mapping[int, Mapping[int, float]] | None = None) -> list[BackendEvent]:
         """Place every peer's map in this robot's again, from the loops held and the maps as
         they are now (the graph's poses, and ``peers``: each peer's keyframe poses in its
-        own map, by index); returns the lines to log."""
+        own map, by index; ``paths``: see :meth:`FleetAlignment.solve`); returns the lines
+        to log."""
         if self.fleet is None or self.graph is None:
             return []
-        return self.fleet.solve(self.graph.poses(), peers)
+        return self.fleet.solve(self.graph.poses(), peers, paths)
 
     # -- the session -------------------------------------------------------------------------
 

@@ -144,6 +144,11 @@ def test_bad_loops_are_refused_and_memory_is_bounded() -> None:
         fa.add(scene.loop(q, scene.matching(q)))
     assert fa.state(1).loops == 20
     assert fa.peers() == [1] and fa.state(7).peer == 7 and not fa.state(7).aligned
+    # Paths given for the peer's keyframes (a node gets only those of its loops) stand for
+    # the path along its poses; a keyframe without a path is left out.
+    linked = {k: scene.peer[k] for k in range(0, 120)}
+    paths = {1: {k: float(k) for k in range(0, 120)}}
+    assert [e.kind for e in fa.solve(scene.own_poses(), {1: linked}, paths)] == ['aligned']
     # A peer without poses yet stays as it is; one forgotten is gone.
     assert fa.solve(scene.own_poses(), {}) == []
     fa.forget(1)
