@@ -41,3 +41,10 @@ def test_bench_real_scores_a_real_recording(shared_data: Path, tmp_path: Path) -
     report = json.loads((tmp_path / 'real.json').read_text())
     assert report['bench'] == 'bench_real' and report['commit']
     assert report['recordings']['quickshack']['published'] > 0
+
+
+def test_bench_fleet_map_prints_joint_ate_and_false_loop_moves() -> None:
+    out = _bench('bench_fleet_map.py', '--fleets', 'sim')
+    assert 'sim: joint ATE' in out and 'robot 2 <- 1: aligned True' in out
+    line = next(ln for ln in out.splitlines() if ln.startswith('sim + 4 false loops'))
+    assert '4 false published' in line and 'worst' in line

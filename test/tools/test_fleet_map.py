@@ -61,13 +61,12 @@ class Fleet:
         return replay_fleet(self.bags, self.config, wrap_odometry=self.wraps, **changes)
 
 
-@pytest.fixture(scope='module')
-def hku1_fleet(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Fleet:
-    """hku1 cut in two: robot 1 (the second half) returns to robot 0's start."""
+def make_hku1_fleet(shared_data: Path, tmp: Path) -> Fleet:
+    """hku1 cut in two: robot 1 (the second half) returns to robot 0's start (bags in
+    ``tmp``; the clean run done)."""
     clouds, stamps = hku1_scans(shared_data)
     poses = read_kitti_poses(shared_data / 'hku1' / 'optimized_poses.txt')
     half = len(clouds) // 2
-    tmp = tmp_path_factory.mktemp('hku1_fleet')
     rng = np.random.default_rng(5)
     bags, wraps = [], []
     for robot, part in enumerate((range(half), range(half, len(clouds)))):
@@ -82,15 +81,19 @@ def hku1_fleet(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> F
 
 
 @pytest.fixture(scope='module')
-def sim_fleet(tmp_path_factory: pytest.TempPathFactory) -> Fleet:
+def hku1_fleet(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Fleet:
+    """hku1 cut in two (:func:`make_hku1_fleet`)."""
+    return make_hku1_fleet(shared_data, tmp_path_factory.mktemp('hku1_fleet'))
+
+
+def make_sim_fleet(tmp: Path) -> Fleet:
     """Three robots of the simulated town on one street (30 scans each, 0.2 s apart,
     interleaved): robot 0 from scan 0, robots 1 and 2 from scans 166 and 180 on the other
-    lane, each odometry drifting 1 % and 0.055 deg/m."""
+    lane, each odometry drifting 1 % and 0.055 deg/m (bags in ``tmp``; the clean run done)."""
     from solid_ros.sim.bagwriter import DEMO_DEFAULTS
     from solid_ros.sim.drive import Drive, DriveConfig
 
     drive = Drive(DriveConfig(**DEMO_DEFAULTS))
-    tmp = tmp_path_factory.mktemp('sim_fleet')
     rng = np.random.default_rng(3)
     bags, wraps = [], []
     for robot, first in enumerate((0, 166, 180)):
@@ -104,6 +107,12 @@ def sim_fleet(tmp_path_factory: pytest.TempPathFactory) -> Fleet:
     fleet = Fleet(bags, wraps, cfg)
     fleet.clean = fleet.run()
     return fleet
+
+
+@pytest.fixture(scope='module')
+def sim_fleet(tmp_path_factory: pytest.TempPathFactory) -> Fleet:
+    """Three simulated robots (:func:`make_sim_fleet`)."""
+    return make_sim_fleet(tmp_path_factory.mktemp('sim_fleet'))
 
 
 def _false_loop(result: FleetResult, robot: int, q: int, peer: int, m: int,
