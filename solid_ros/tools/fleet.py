@@ -39,6 +39,7 @@ from solid_ros.core.odometry.track import OdometrySource, StampedOdometry
 from solid_ros.core.reasons import Reason
 from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.formats.bags import Bag, CloudScan, select_cloud_topic, select_odom_topic
+from solid_ros.formats.peers import CloudReply, decode, encode
 from solid_ros.formats.poses import PoseTrack
 from solid_ros.tools.fleet_map import (
     FleetAligner,
@@ -198,11 +199,14 @@ def _source(track: PoseTrack, opts: ReplayOptions) -> OdometrySource | None:
 
 
 def _connect(robots: list[_Robot]) -> None:
-    """Let each robot's detector fetch the others' keyframe clouds, as a node asks a peer."""
+    """Let each robot's detector fetch the others' keyframe clouds, as a node asks a peer:
+    through the cloud reply's bytes (ground thinned, quantised: what a peer receives)."""
     def fetch(robot: int, index: int, stamp_ns: int) -> KeyframeCloud | Reason:
         if not 0 <= robot < len(robots):
             return 'peer_gone'
-        cloud = robots[robot].detector.own_cloud(index)
+        own = robots[robot].detector.peer_cloud(index)
+        reply = decode(encode(CloudReply(robot, 0, index, 0, stamp_ns, own)))
+        cloud = reply.cloud if isinstance(reply, CloudReply) else None
         return cloud if cloud is not None else 'peer_evicted'
 
     for robot in robots:

@@ -117,7 +117,7 @@ from solid_ros.core.verification.calibration import (
 from solid_ros.core.verification.judge import Bars, Measures, judge
 from solid_ros.core.verification.judge import bars as judge_bars
 from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
-from solid_ros.core.verification.registration import Query, coarsened
+from solid_ros.core.verification.registration import Query, coarsened, for_peers
 from solid_ros.core.verification.verifier import TIGHT_GRID, Verification, Verifier
 
 __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
@@ -787,6 +787,11 @@ class LoopDetector:
         cloud = None if seq is None else self.clouds.get(seq)
         # Peers keep the configuration's grid: a tight-space cloud goes out on it.
         return None if cloud is None else coarsened(cloud, self._config.verify_voxel_size)
+
+    def peer_cloud(self, index: int) -> KeyframeCloud | None:
+        """:meth:`own_cloud` as a peer gets it: the ground thinned (:func:`for_peers`)."""
+        cloud = self.own_cloud(index)
+        return None if cloud is None else for_peers(cloud, self._config.verify_voxel_size)
 
     # --------------------------------------------------------------------------- persistence
 
