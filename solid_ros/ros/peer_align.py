@@ -15,7 +15,8 @@ Outputs: ``/tf`` ``map_frame -> <map_frame>/robot<j>`` for every aligned peer ``
 of this robot's tree: on a shared ``/tf`` every robot names its own view of a peer, so no frame
 gets two parents); ``/diagnostics`` values ``fleet_*``; one log line when a peer is aligned or
 its alignment jumps; ``~/peer_paths/robot<j>`` (nav_msgs/Path in ``map_frame``, latched) after
-``~/peer_paths`` is called. Memory per peer is bounded (``_MAX_POSES`` poses, the core's
+``~/peer_paths`` is called. A robot's alignment messages draw on its descriptor budget
+(``peer_descriptor_rate``). Memory per peer is bounded (``_MAX_POSES`` poses, the core's
 loops); a peer the guard no longer tracks is forgotten, one that left keeps its alignment.
 """
 
@@ -196,6 +197,8 @@ class PeerAlign:
             if sender is not None and sender != robot:
                 raise Refused('sender_mismatch', f'robot {sender} sent for robot {robot}')
             self._guard.admit(robot)
+            if not self._guard.allow_descriptor(robot):  # the robot's descriptor budget
+                raise Refused('rate_limited', f'robot {robot} sends faster than its budget')
         except Refused as r:
             self.counts[f'refused_{r.kind}'] += 1
             return

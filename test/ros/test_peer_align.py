@@ -169,6 +169,17 @@ def test_memory_per_peer_is_bounded(context: Any) -> None:
         for i in range(_MAX_LINKED + 10):
             align._link(i, None)
         assert len(align._linked) == _MAX_LINKED
+        # A robot's alignment messages share its descriptor budget: a flood is refused.
+        from std_msgs.msg import UInt8MultiArray
+
+        from solid_ros.formats.fleet_msgs import encode_align
+        flood = UInt8MultiArray()
+        flood.data = encode_align(PosesMessage(6, ((0, pose, 0.0),)))
+        before = align.counts['poses_received']
+        for _ in range(3000):
+            align._on_message(flood)
+        assert 0 < align.counts['refused_rate_limited'] < 3000
+        assert 0 < align.counts['poses_received'] - before < 3000
         # A path announced in more parts than a path may hold is refused before it is kept.
         align._paths.part(PosesMessage(5, ((0, pose, 0.0),), True, 0, 60_000))
         assert align.counts['paths_refused_oversized'] == 1 and not align._paths._parts
