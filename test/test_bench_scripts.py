@@ -55,3 +55,10 @@ def test_bench_verify_writes_a_markdown_report(shared_data: Path, tmp_path: Path
     report = (tmp_path / 'verify.md').read_text()
     assert report.startswith('# bench_verify report')
     assert '| hku1 replay (as shipped) | avia.yaml | as shipped' in report
+
+
+def test_bench_fleet_map_prints_joint_ate_and_false_loop_moves() -> None:
+    out = _bench('bench_fleet_map.py', '--fleets', 'sim')
+    assert 'sim: joint ATE' in out and 'robot 2 <- 1: aligned True' in out
+    line = next(ln for ln in out.splitlines() if ln.startswith('sim + 4 false loops'))
+    assert '4 false published' in line and 'worst' in line

@@ -24,7 +24,7 @@ from solid_ros.core.reasons import Reason
 
 __all__ = ['ACCEPTED', 'EVIDENCE_FIELDS', 'IDENTITY_POSE', 'NAN_COV', 'BackendEvent',
            'BackendState', 'Descriptor', 'Evidence', 'Keyframe', 'LoopCandidate', 'LoopOutcome',
-           'Match', 'ScanResult', 'Source', 'StageTimes', 'loop_name']
+           'Match', 'PeerAlignment', 'ScanResult', 'Source', 'StageTimes', 'loop_name']
 
 FloatArray = npt.NDArray[np.float64]
 NAN_COV: tuple[float, ...] = (math.nan,) * 36
@@ -314,8 +314,8 @@ class BackendEvent:
 
     Attributes:
         kind: ``'segment'``, ``'anchor'``, ``'tie'``, ``'rebuild'``, ``'gate'``,
-            ``'confirmed'``, ``'unconfirmed'``, ``'odom_covariance'``, ``'no_pose'`` or
-            ``'ignored'``.
+            ``'confirmed'``, ``'unconfirmed'``, ``'odom_covariance'``, ``'no_pose'``,
+            ``'ignored'``, or of a peer's alignment ``'aligned'`` and ``'jump'``.
         message: the line.
     """
 
@@ -376,6 +376,35 @@ class BackendState:
     loops: tuple[LoopOutcome, ...] = ()
     events: tuple[BackendEvent, ...] = ()
     update_ms: float = 0.0
+
+
+@dataclass(frozen=True)
+class PeerAlignment:
+    """Where a peer robot's map frame sits in this robot's map frame
+    (:mod:`solid_ros.core.backend.alignment`).
+
+    Attributes:
+        peer: the peer's robot id (its session id).
+        aligned: a set of at least ``min_loops`` mutually consistent inter-robot loops placed
+            it (it stays so, with the last transform, while no such set decides otherwise).
+        transform: ``T_own_map_peer_map`` (4x4; peer map coordinates into this robot's map),
+            None while unaligned.
+        covariance: 6x6 covariance of ``transform`` (ROS order, right perturbation), None while
+            unaligned.
+        loops: inter-robot loops held for this peer (both robots' loops between the two).
+        inliers: loops of the consistent set that decided ``transform``.
+        rival: size of the largest set of loops that disagrees with it (0: none).
+        jumps: times the transform moved by more than the jump bounds after aligning.
+    """
+
+    peer: int
+    aligned: bool = False
+    transform: FloatArray | None = None
+    covariance: FloatArray | None = None
+    loops: int = 0
+    inliers: int = 0
+    rival: int = 0
+    jumps: int = 0
 
 
 def loop_name(loop: LoopCandidate) -> str:

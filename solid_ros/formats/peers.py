@@ -1,17 +1,20 @@
 """Messages robots exchange: keyframe descriptors, cloud requests and replies, catch-up.
 
 Each message is the ``data`` of a ``std_msgs/UInt8MultiArray`` (no custom interface package
-to build), little-endian, starting with a 4-byte kind and a version byte (2: version 1 had no
-stamps in requests and replies; the versions refuse each other's messages):
+to build), little-endian, starting with a 4-byte kind and a version byte (3: version 2 sent
+descriptors as float32 and clouds as float32 x y z, version 1 had no stamps in requests and
+replies; the versions refuse each other's messages):
 
 ``SLD1`` descriptor (``/solid/descriptors``)::
 
     4s kind, u8 version, u8 flags (bit 0: pose follows), u16 reserved,
     i32 robot, i64 keyframe index, i64 stamp ns, 8s settings fingerprint,
-    u16 N_r, u16 N_a, f32[N_r] R-SOLiD (unit), f32[N_a] heading signature (unit),
+    u16 N_r, u16 N_a, f16[N_r] R-SOLiD (unit), f16[N_a] heading signature (unit),
     [f32[7] pose x y z qx qy qz qw]
 
-    40 bytes + 4 (N_r + N_a): 440 bytes for the usual 40 x 60 bins.
+    40 bytes + 2 (N_r + N_a) (+ 28 with the pose): 240 bytes for the usual 40 x 60 bins
+    (half floats: a unit vector's bins keep 3 significant digits, a thousandth of the
+    distances the detector tells places apart by).
 
 ``SLQ1`` cloud request (``/solid/cloud_requests``)::
 
@@ -22,7 +25,8 @@ stamps in requests and replies; the versions refuse each other's messages):
 
     4s, u8 version, u8 status (0 ok, 1 evicted/unknown), u16, i32 owner, i32 requester,
     i64 keyframe index, i64 keyframe stamp ns, u32 request id, i32 structure points,
-    u32 points, f32[points][3] x y z (the keyframe cloud, structure first)
+    u32 points, then the keyframe cloud (structure first) quantised and deflated
+    (:mod:`solid_ros.formats.cloud_codec`: about 2.5 to 3 bytes a point)
 
 ``SLK1`` catch-up request (``/solid/cloud_requests``)::
 
@@ -54,13 +58,14 @@ import numpy.typing as npt
 
 from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.errors import SolidError
+from solid_ros.formats.cloud_codec import CloudCodecError, cloud_step, pack_points, unpack_points
 
 __all__ = ['CatchUpRequest', 'CloudReply', 'CloudRequest', 'DescriptorMessage',
            'MAX_CLOUD_POINTS', 'MAX_DESCRIPTOR_BYTES', 'PeerAuthError', 'PeerMessageError',
            'Sealed', 'TAG_BYTES', 'decode', 'encode', 'is_sealed', 'key_id', 'reply_bytes',
            'reply_requester', 'seal', 'unseal']
 
-VERSION = 2
+VERSION = 3
 MAX_BINS = 4096
 MAX_CLOUD_POINTS = 2_000_000
 MAX_ROBOT = 2**31 - 1  # robot ids are session ids
@@ -70,7 +75,7 @@ _REQ = struct.Struct('<4sBBHiiqqI')
 _REPLY = struct.Struct('<4sBBHiiqqIiI')
 _CATCH = struct.Struct('<4sBBHiI')
 _SEAL = struct.Struct('<4sBBHiq')
-MAX_DESCRIPTOR_BYTES = _DESC.size + 8 * MAX_BINS + 28
+MAX_DESCRIPTOR_BYTES = _DESC.size + 4 * MAX_BINS + 28
 _CONTEXT = b'solid_ros/peers\x00'
 
 
@@ -152,8 +157,8 @@ def _fingerprint_bytes(text: str) -> bytes:
 def encode(msg: Message) -> bytes:
     """Bytes of one message (see the module docstring)."""
     if isinstance(msg, DescriptorMessage):
-        r = np.ascontiguousarray(msg.r_solid, dtype='<f4').ravel()
-        a = np.ascontiguousarray(msg.heading, dtype='<f4').ravel()
+        r = np.ascontiguousarray(msg.r_solid, dtype='<f2').ravel()
+        a = np.ascontiguousarray(msg.heading, dtype='<f2').ravel()
         flags = 1 if msg.pose is not None else 0
         head = _DESC.pack(b'SLD1', VERSION, flags, 0, msg.robot, msg.index, msg.stamp_ns,
                           _fingerprint_bytes(msg.fingerprint), len(r), len(a))
@@ -163,19 +168,20 @@ def encode(msg: Message) -> bytes:
         return _REQ.pack(b'SLQ1', VERSION, 0, 0, msg.requester, msg.owner, msg.index,
                          msg.stamp_ns, msg.request_id)
     if isinstance(msg, CloudReply):
-        if msg.cloud is None:
+        cloud = msg.cloud
+        if cloud is None:
             return _REPLY.pack(b'SLC1', VERSION, 1, 0, msg.owner, msg.requester, msg.index,
                                msg.stamp_ns, msg.request_id, 0, 0)
-        pts = np.ascontiguousarray(msg.cloud.points, dtype='<f4').reshape(-1, 3)
         return _REPLY.pack(b'SLC1', VERSION, 0, 0, msg.owner, msg.requester, msg.index,
-                           msg.stamp_ns, msg.request_id, msg.cloud.n_struct,
-                           len(pts)) + pts.tobytes()
+                           msg.stamp_ns, msg.request_id, cloud.n_struct, len(cloud.points)
+                           ) + pack_points(cloud.points, cloud.n_struct, cloud_step(cloud))
     return _CATCH.pack(b'SLK1', VERSION, 0, 0, msg.requester, msg.limit)
 
 
 def reply_bytes(points: int) -> int:
-    """Size of a cloud reply of ``points`` points (the cap a receiver checks first)."""
-    return _REPLY.size + 12 * int(points)
+    """Largest size of a cloud reply of ``points`` points (the cap a receiver checks first:
+    6 bytes a point before deflating, plus zlib's worst case)."""
+    return _REPLY.size + 8 + 6 * int(points) + int(points) // 16 + 64
 
 
 def reply_requester(raw: bytes) -> int | None:
@@ -288,15 +294,17 @@ def _descriptor(raw: bytes) -> DescriptorMessage:
     _, _, flags, _, robot, index, stamp, fp, n_r, n_a = _DESC.unpack_from(raw)
     if not (0 < n_r <= MAX_BINS and 0 < n_a <= MAX_BINS):
         raise PeerMessageError(f'descriptor sizes {n_r} x {n_a} out of range')
-    want = _DESC.size + 4 * (n_r + n_a) + (28 if flags & 1 else 0)
+    want = _DESC.size + 2 * (n_r + n_a) + (28 if flags & 1 else 0)
     _size(raw, want, 'descriptor')
-    vals = np.frombuffer(raw, dtype='<f4', offset=_DESC.size).astype(np.float32)
-    if not np.all(np.isfinite(vals)):
+    bins = np.frombuffer(raw, dtype='<f2', count=n_r + n_a, offset=_DESC.size)
+    tail = np.frombuffer(raw, dtype='<f4', offset=_DESC.size + 2 * (n_r + n_a))
+    vals = bins.astype(np.float32)
+    if not (np.all(np.isfinite(vals)) and np.all(np.isfinite(tail))):
         raise PeerMessageError('descriptor holds NaN or infinite values')
     r, a = vals[:n_r], vals[n_r:n_r + n_a]
     if np.any(r < 0.0) or np.any(a < 0.0):
         raise PeerMessageError('descriptor holds negative bins')
-    pose = tuple(float(v) for v in vals[n_r + n_a:]) if flags & 1 else None
+    pose = tuple(float(v) for v in tail) if flags & 1 else None
     return DescriptorMessage(_robot(robot), _index(index), stamp, fp.hex(), r, a, pose)
 
 
@@ -311,8 +319,10 @@ def _reply(raw: bytes, max_points: int) -> CloudReply:
     if status != 0 or not 0 < n <= min(max_points, MAX_CLOUD_POINTS) or not 0 <= n_struct <= n:
         raise PeerMessageError(f'cloud reply status {status}, {n} points, {n_struct} '
                                f'structure points: out of range (at most {max_points} points)')
-    _size(raw, _REPLY.size + 12 * n, 'cloud reply')
-    pts = np.frombuffer(raw, dtype='<f4', offset=_REPLY.size).astype(np.float32).reshape(n, 3)
-    if not np.all(np.isfinite(pts)) or np.abs(pts).max() > 1e5:
-        raise PeerMessageError('cloud holds NaN, infinite or implausibly far points')
+    try:
+        pts = unpack_points(memoryview(raw)[_REPLY.size:], n, n_struct)
+    except CloudCodecError as exc:
+        raise PeerMessageError(str(exc)) from exc
+    if np.abs(pts).max() > 1e5:
+        raise PeerMessageError('cloud holds implausibly far points')
     return CloudReply(owner, requester, index, rid, stamp, KeyframeCloud(pts, n_struct))

@@ -133,6 +133,11 @@ class BackendIO:
             return None
         return self._node.create_publisher(TFMessage, '/tf', _TF_QOS)
 
+    @property
+    def output(self) -> GraphOutput:
+        """The pose graph's newest snapshot and its updates."""
+        return self._output
+
     # -- from the verify thread and the odometry callback ----------------------------------
 
     def take(self, verified: Verified, loops: tuple[LoopCandidate, ...]) -> Step | None:

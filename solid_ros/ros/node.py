@@ -77,6 +77,7 @@ from solid_ros.ros.markers import LoopMarkers
 from solid_ros.ros.memory import LARGE_BYTES, HeapTrim, Renewal
 from solid_ros.ros.odom_wait import OdometryWait
 from solid_ros.ros.params import apply_changes, changed, declare_all
+from solid_ros.ros.peer_align import PeerAlign
 from solid_ros.ros.peer_guard import key_file_is_private, load_fleet_key
 from solid_ros.ros.peers import PeerLink, can_renew
 from solid_ros.ros.sensor_watch import SensorWatch
@@ -139,6 +140,7 @@ class SolidNode(Node):
             super().destroy_node()
             raise
         self._backend = self._start_backend()
+        self._align = self._start_align()
         self._loop_output = LoopOutput(
             self._pub_cands.publish, self.get_logger(), self.stats, self._shared, self._markers,
             self._solid_cfg.session_id, self._peers.robots if self._peers is not None else ())
@@ -216,6 +218,14 @@ class SolidNode(Node):
         output = GraphOutput(self._shared, self.get_logger(), self._stamps.headers)
         return BackendIO(self, cfg, output, self._shared, mount_rotation(solid),
                          self._odom_frame_now)
+
+    def _start_align(self) -> PeerAlign | None:
+        """Peers' maps in this robot's, with peers and the back end on."""
+        if self._peers is None or self._backend is None:
+            return None
+        return PeerAlign(self, self._solid_cfg.session_id, self._shared, self._peers.robots,
+                         self._backend.output, self._node_cfg.map_frame,
+                         self._node_cfg.tf_rate_hz)
 
     def _odom_frame_now(self) -> str:
         """The odometry frame: the parameter, KISS-ICP's, or the odometry messages'."""
@@ -400,6 +410,8 @@ class SolidNode(Node):
         step = self._backend.take(verified, restored.result.loops)
         if step is not None and math.isfinite(step.scan.times.step):  # registered steps on
             self._stages.timings.add('step', step.scan.times.step)
+        if step is not None and self._align is not None:
+            self._align.keyframe(step)
 
     # -- services and diagnostics -----------------------------------------------------------
 
@@ -430,6 +442,8 @@ class SolidNode(Node):
             self._markers.clear()
         if self._backend is not None:
             self._backend.reset()
+        if self._align is not None:
+            self._align.reset()
         response.success, response.message = True, 'database cleared'
         self.get_logger().info('database cleared by ~/reset')
         return response
@@ -456,6 +470,8 @@ class SolidNode(Node):
             values.update(self._peers.diagnostics())
         if self._backend is not None:
             values.update(self._backend.values())
+        if self._align is not None:
+            values.update(self._align.values())
         if self._kiss is not None:
             values.update(self._kiss.values())
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]

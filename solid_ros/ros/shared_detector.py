@@ -17,6 +17,7 @@ for another robot.
 from __future__ import annotations
 
 import threading
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -32,7 +33,7 @@ from solid_ros.core.flow.closure import LoopClosure, Step
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.reasons import Reason
-from solid_ros.core.results import LoopCandidate, ScanResult
+from solid_ros.core.results import BackendEvent, LoopCandidate, PeerAlignment, ScanResult
 from solid_ros.formats.peers import DescriptorMessage
 
 __all__ = ['CloudSource', 'IN_FLIGHT', 'SharedDetector']
@@ -222,20 +223,45 @@ class SharedDetector:
             return True
 
     def own_cloud(self, index: int, stamp_ns: int) -> KeyframeCloud | None:
-        """This robot's stored cloud of keyframe ``index`` if it is stamped ``stamp_ns``,
-        else None (a request naming another stamp is not for this keyframe)."""
+        """This robot's stored cloud of keyframe ``index`` as a peer gets it
+        (:meth:`LoopDetector.peer_cloud`) if it is stamped ``stamp_ns``, else None (a request
+        naming another stamp is not for this keyframe)."""
         with self._describe_lock:
             db = self._detector.database
             seq = db.own_seq(index)
             if seq is None or db.match_info(seq)[2] != stamp_ns:
                 return None
-        return self._detector.clouds.get(seq)
+        return self._detector.peer_cloud(index)
 
     def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
                                                       FloatArray | None]]:
         """This robot's newest stored keyframes (for a peer's catch-up)."""
         with self._describe_lock:
             return self._detector.own_keyframes(limit)
+
+    def add_peer_loop(self, loop: LoopCandidate, robot: int) -> bool:
+        """A loop ``robot`` published against this robot (:meth:`LoopClosure.add_peer_loop`,
+        under the stage-2 lock, where the graph holds this robot's own)."""
+        with self._verify_lock:
+            return self._closure.add_peer_loop(loop, robot)
+
+    def align(self, peers: Mapping[int, Mapping[int, FloatArray]],
+              paths: Mapping[int, Mapping[int, float]]) -> list[BackendEvent]:
+        """:meth:`LoopClosure.align` under the stage-2 lock (the graph's poses are read)."""
+        with self._verify_lock:
+            return self._closure.align(peers, paths)
+
+    def alignments(self) -> list[PeerAlignment]:
+        """Every peer's alignment as decided last (empty without the back end)."""
+        with self._verify_lock:
+            fleet = self._closure.fleet
+            return [] if fleet is None else fleet.states()
+
+    def forget_peer(self, robot: int) -> None:
+        """Drop a peer's loops and alignment (it is no longer tracked)."""
+        with self._verify_lock:
+            if self._closure.fleet is not None:
+                self._closure.fleet.forget(robot)
 
     def keyframe_clouds(self, poses: dict[int, FloatArray],
                         ) -> list[tuple[FloatArray, npt.NDArray[np.float32]]]:

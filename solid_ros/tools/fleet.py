@@ -11,9 +11,12 @@ parts), and is fed to its robot's detector as in the one-bag replay: unless ``us
 off, or ``odometry`` is ``'kiss-icp'`` (each robot's KISS-ICP over its own clouds instead).
 
 Each robot's clouds go through the same chain as in the one-bag replay
-(:mod:`solid_ros.tools.pipeline`: odometry pose by stamp, then the detector), with its
-keyframe handed to the peers between the descriptor stage and verification. The scoring, the
-report and the outputs are in :mod:`solid_ros.tools.fleet_scoring`.
+(:mod:`solid_ros.tools.pipeline`: odometry pose by stamp, then the loop closure), with its
+keyframe handed to the peers between the descriptor stage and verification. With the back
+end on (``backend`` and odometry fed), each robot keeps its own pose graph and places the
+others' maps in it from the inter-robot loops (:mod:`solid_ros.tools.fleet_map`); the
+trajectories then come out in one fleet frame, robot 0's map. The scoring, the report and the
+outputs are in :mod:`solid_ros.tools.fleet_scoring`.
 """
 
 from __future__ import annotations
@@ -30,12 +33,20 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.errors import BagError, ConfigError, PoseError, SolidError
+from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdometrySource, StampedOdometry
 from solid_ros.core.reasons import Reason
 from solid_ros.core.results import LoopCandidate, ScanResult
 from solid_ros.formats.bags import Bag, CloudScan, select_cloud_topic, select_odom_topic
+from solid_ros.formats.peers import CloudReply, decode, encode
 from solid_ros.formats.poses import PoseTrack
+from solid_ros.tools.fleet_map import (
+    FleetAligner,
+    alignment_rows,
+    fleet_errors,
+    fleet_trajectories,
+)
 from solid_ros.tools.fleet_scoring import (
     FLEET_CSV_COLUMNS,
     FleetResult,
@@ -46,6 +57,7 @@ from solid_ros.tools.fleet_scoring import (
     write_fleet_outputs,
 )
 from solid_ros.tools.options import ReplayOptions
+from solid_ros.tools.pipeline import OdometryWrap
 from solid_ros.tools.progress import Progress
 from solid_ros.tools.scoring import reference_poses
 
@@ -56,7 +68,7 @@ __all__ = ['FLEET_CSV_COLUMNS', 'FleetResult', 'fleet_summary_lines', 'replay_fl
 @dataclass
 class _Robot:
     """One robot of a fleet replay: its bag, its reference track, the odometry fed to its
-    detector (None: none) and the detector."""
+    loop closure (None: none) and the loop closure."""
 
     index: int
     path: str | Path
@@ -64,8 +76,13 @@ class _Robot:
     topic: str
     track: PoseTrack
     odometry: OdometrySource | None
-    detector: LoopDetector
+    closure: LoopClosure
     skipped: int = 0
+
+    @property
+    def detector(self) -> LoopDetector:
+        """Its loop detector."""
+        return self.closure.detector
 
     def scans(self) -> Iterator[tuple[int, int, CloudScan]]:
         """``(stamp, robot, scan)`` of its clouds, to merge with the others' by stamp."""
@@ -74,7 +91,9 @@ class _Robot:
 
 
 def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None,
-                 options: ReplayOptions | None = None, **changes: Any) -> FleetResult:
+                 options: ReplayOptions | None = None,
+                 wrap_odometry: Sequence[OdometryWrap | None] | None = None,
+                 **changes: Any) -> FleetResult:
     """Replay one bag per robot with descriptor exchange; see the module docstring.
 
     Args:
@@ -84,9 +103,12 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None,
             pairing tolerance, ``use_odom``, ``odometry_source``), ``topic`` and
             ``odom_topic`` (in every bag; default: each bag's only one), ``use_odom``,
             ``odometry``, ``radius``, ``max_heading_deg``, ``max_pose_error_m``,
-            ``max_pose_error_deg``, ``progress`` (default 'quiet') and ``stream``; the others
-            belong to one bag and are refused (the command line drops them with a note,
-            :meth:`ReplayOptions.for_fleet`).
+            ``max_pose_error_deg``, ``plots``, ``progress`` (default 'quiet') and ``stream``;
+            the others belong to one bag and are refused (the command line drops them with a
+            note, :meth:`ReplayOptions.for_fleet`).
+        wrap_odometry: per robot, applied to the odometry source the options chose (a
+            plug-in, as :func:`solid_ros.tools.replay.replay` takes one: e.g. the same odometry
+            in another frame, drifting); the bag's Odometry stays the reference.
         **changes: :class:`ReplayOptions` fields replacing those of ``options``.
 
     Raises:
@@ -106,23 +128,35 @@ def replay_fleet(bags: Sequence[str | Path], config: SolidConfig | None = None,
     result = FleetResult([Path(b) for b in bags])
     robots: list[_Robot] = []
     try:
+        wraps = list(wrap_odometry or [])
         for path in bags:
-            robots.append(_open(path, len(robots), cfg, opts))
+            wrap = wraps[len(robots)] if len(robots) < len(wraps) else None
+            robots.append(_open(path, len(robots), cfg, opts, wrap))
         _connect(robots)
-        result.stamps, result.published = _run(robots, opts)
+        aligner = FleetAligner([r.closure for r in robots])
+        result.stamps, result.published = _run(robots, opts, aligner)
     finally:
         for robot in robots:
             robot.bag.close()
     result.reference = [_reference(r, result.stamps[r.index], opts) for r in robots]
+    if any(r.closure.graph is not None for r in robots):
+        result.trajectories = fleet_trajectories(aligner.closures)
+        result.alignment_events = aligner.events
     result.errors = [[loop_error(result, i, c) for c in loops]
                      for i, loops in enumerate(result.published)]
     runs = [RobotRun(r.bag.integrity, r.skipped, r.detector.reasons) for r in robots]
     result.report = fleet_report(result, runs, cfg, opts)
+    if result.trajectories:
+        result.report['fleet_map'] = {
+            **fleet_errors(result.trajectories, result.stamps, result.reference),
+            'alignments': alignment_rows(aligner.closures)}
     return result
 
 
-def _open(path: str | Path, index: int, cfg: SolidConfig, opts: ReplayOptions) -> _Robot:
-    """Robot ``index``: its bag open, its topics chosen, its odometry read.
+def _open(path: str | Path, index: int, cfg: SolidConfig, opts: ReplayOptions,
+          wrap: OdometryWrap | None = None) -> _Robot:
+    """Robot ``index``: its bag open, its topics chosen, its odometry read, its loop closure
+    (with the back end when ``backend`` is on and it has odometry).
 
     Raises:
         SolidError: the bag cannot be read, or lacks a cloud or an Odometry topic.
@@ -136,11 +170,14 @@ def _open(path: str | Path, index: int, cfg: SolidConfig, opts: ReplayOptions) -
         track = bag.odometry(odom)
         topic = select_cloud_topic(bag, opts.topic)
         source = _source(track, opts)
+        if wrap is not None:
+            source = wrap(source)
     except BaseException:
         bag.close()
         raise
-    detector = LoopDetector(cfg.replace(session_id=index))
-    return _Robot(index, path, bag, topic, track, source, detector)
+    closure = LoopClosure(LoopDetector(cfg.replace(session_id=index)),
+                          backend=cfg.backend and source is not None)
+    return _Robot(index, path, bag, topic, track, source, closure)
 
 
 def _source(track: PoseTrack, opts: ReplayOptions) -> OdometrySource | None:
@@ -162,20 +199,24 @@ def _source(track: PoseTrack, opts: ReplayOptions) -> OdometrySource | None:
 
 
 def _connect(robots: list[_Robot]) -> None:
-    """Let each robot's detector fetch the others' keyframe clouds, as a node asks a peer."""
+    """Let each robot's detector fetch the others' keyframe clouds, as a node asks a peer:
+    through the cloud reply's bytes (ground thinned, quantised: what a peer receives)."""
     def fetch(robot: int, index: int, stamp_ns: int) -> KeyframeCloud | Reason:
         if not 0 <= robot < len(robots):
             return 'peer_gone'
-        cloud = robots[robot].detector.own_cloud(index)
+        own = robots[robot].detector.peer_cloud(index)
+        reply = decode(encode(CloudReply(robot, 0, index, 0, stamp_ns, own)))
+        cloud = reply.cloud if isinstance(reply, CloudReply) else None
         return cloud if cloud is not None else 'peer_evicted'
 
     for robot in robots:
         robot.detector.fetch_cloud = fetch
 
 
-def _run(robots: list[_Robot],
-         opts: ReplayOptions) -> tuple[list[list[int]], list[list[LoopCandidate]]]:
-    """Every robot's clouds merged by stamp; per robot its keyframe stamps and its loops."""
+def _run(robots: list[_Robot], opts: ReplayOptions, aligner: FleetAligner
+         ) -> tuple[list[list[int]], list[list[LoopCandidate]]]:
+    """Every robot's clouds merged by stamp; per robot its keyframe stamps and its loops
+    (with the back end, the robots' alignments decided as loops come and at the end)."""
     stamps: list[list[int]] = [[] for _ in robots]
     published: list[list[LoopCandidate]] = [[] for _ in robots]
     prog = Progress(sum(r.bag.topics[r.topic].count for r in robots), opts.progress,
@@ -188,6 +229,9 @@ def _run(robots: list[_Robot],
             if res is not None and res.keyframe:
                 stamps[i].append(stamp)
                 published[i].extend(res.loops)
+                aligner.loops(i, res.loops)
+                aligner.align(stamp)
+        aligner.align(max((s[-1] for s in stamps if s), default=0), everyone=True)
     except BaseException:
         prog.clear()
         raise
@@ -208,8 +252,7 @@ def _step(robots: list[_Robot], robot: _Robot, stamp: int,
     paired = (robot.odometry.pose_for(stamp, scan.points) if robot.odometry is not None
               else None)
     try:
-        proposal = robot.detector.propose(scan.points, stamp,
-                                          paired.pose if paired is not None else None)
+        proposal = robot.closure.propose(scan.points, stamp, paired)
     except SolidError:  # a cloud the core refuses is skipped, as the node does
         robot.skipped += 1
         return None
@@ -221,7 +264,7 @@ def _step(robots: list[_Robot], robot: _Robot, stamp: int,
                 other.detector.add_peer_keyframe(robot.index, proposal.query_index, stamp,
                                                  proposal.r_solid, proposal.heading,
                                                  proposal.pose)
-    return robot.detector.verify(proposal)
+    return robot.closure.finish(proposal, paired).scan
 
 
 def _reference(robot: _Robot, stamps: list[int], opts: ReplayOptions) -> npt.NDArray[np.float64]:

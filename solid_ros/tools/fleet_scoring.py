@@ -24,6 +24,8 @@ from solid_ros.core.config import SolidConfig
 from solid_ros.core.errors import SolidError
 from solid_ros.core.results import LoopCandidate
 from solid_ros.formats.candidates import candidate_columns
+from solid_ros.formats.poses import write_tum_poses
+from solid_ros.tools.fleet_map import FleetTrajectory
 from solid_ros.tools.loops import pose_error
 from solid_ros.tools.options import ReplayOptions
 from solid_ros.tools.outputs import candidate_cells
@@ -64,6 +66,10 @@ class FleetResult:
         published: per robot, its published loops in order.
         errors: per robot, ``(trans_err_m, rot_err_deg)`` of each published loop.
         report: the JSON report.
+        trajectories: with the back end, every robot's keyframes in the fleet frame (robot
+            0's map; :mod:`solid_ros.tools.fleet_map`); empty without.
+        alignment_events: with the back end, ``(robot, stamp_ns, line)`` of each alignment
+            event (a peer aligned, an alignment that jumped).
     """
 
     bags: list[Path]
@@ -72,6 +78,8 @@ class FleetResult:
     published: list[list[LoopCandidate]] = field(default_factory=list)
     errors: list[list[tuple[float, float]]] = field(default_factory=list)
     report: dict[str, Any] = field(default_factory=dict)
+    trajectories: list[FleetTrajectory] = field(default_factory=list)
+    alignment_events: list[tuple[int, int, str]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -184,13 +192,31 @@ def fleet_report(r: FleetResult, runs: Sequence[RobotRun], cfg: SolidConfig,
             'config': cfg.to_dict(), 'config_fingerprint': cfg.fingerprint(), **totals}
 
 
-def write_fleet_outputs(out: str | Path, result: FleetResult) -> list[Path]:
-    """Write ``report.json`` and ``candidates.csv`` (every published loop, one row each).
+def write_fleet_outputs(out: str | Path, result: FleetResult, plots: bool = True) -> list[Path]:
+    """Write ``report.json`` and ``candidates.csv`` (every published loop, one row each); with
+    the back end also ``trajectory_robot<i>.tum`` for every robot placed in the fleet frame
+    (robot 0's map) and, with ``plots``, the plot of their paths and inter-robot loops.
 
     Raises:
         SolidError: the directory or files cannot be written.
     """
     out = Path(out)
+    files = _write_tables(out, result)
+    for t in result.trajectories:
+        if t.placed and len(t.poses):
+            files.append(write_tum_poses(out / f'trajectory_robot{t.robot}.tum', t.stamps_ns,
+                                         t.poses))
+    if plots and result.trajectories:
+        from solid_ros.tools.fleet_plot import FLEET_PLOT, write_fleet_plot
+
+        rep = result.report
+        files.append(write_fleet_plot(out / FLEET_PLOT, result.trajectories, result.published,
+                                      result.errors, (rep['max_pose_error_m'],
+                                                      rep['max_pose_error_deg'])))
+    return files
+
+
+def _write_tables(out: Path, result: FleetResult) -> list[Path]:
     try:
         out.mkdir(parents=True, exist_ok=True)
         report = out / 'report.json'
@@ -235,6 +261,28 @@ def fleet_summary_lines(result: FleetResult, prog: str = 'solid_replay') -> list
                  f'{rep["max_pose_error_deg"]} deg of the reference relative pose')
     lines.append(f'  odometry fed     {rep["odometry_fed"]} (the reference: each bag\'s '
                  'Odometry topic)')
+    return lines + _fleet_map_lines(result)
+
+
+def _fleet_map_lines(result: FleetResult) -> list[str]:
+    """The alignment events and the fleet map's errors (back end on)."""
+    fm = result.report.get('fleet_map')
+    if fm is None:
+        return []
+    lines = [f'  robot {robot}          {line}' for robot, _, line in result.alignment_events]
+    for al in fm.get('alignments', []):
+        lines.append(f'  alignment        robot {al["robot"]} of robot {al["peer"]}: '
+                     + (f'aligned by {al["inliers"]} of {al["loops"]} loops' if al['aligned']
+                        else f'unaligned ({al["loops"]} loops)')
+                     + f', rival {al["rival"]}, jumps {al["jumps"]}')
+    for rb in fm['robots']:
+        where = ("in robot 0's map" if rb['placed'] else 'not placed (no consistent set of '
+                 'inter-robot loops joins it to robot 0)')
+        lines.append(f'  fleet map        robot {rb["robot"]}: {rb["keyframes"]} keyframes '
+                     f'{where}, ATE {_fmt(rb["ate_m"])} m, odometry '
+                     f'{_fmt(rb["odometry_ate_m"])} m (each its own SE(3) alignment)')
+    lines.append(f'  fleet map        joint ATE {_fmt(fm["joint_ate_m"])} m (every placed '
+                 'robot under one SE(3) alignment to the reference)')
     return lines
 
 

@@ -70,8 +70,7 @@ _SINGLE_BAG = (
     ('times', '--times', 'it goes with --poses'),
     ('load_db', '--load-db', 'each robot starts a database of its own'),
     ('save_db', '--save-db', 'each robot has a database of its own; none is saved'),
-    ('plots', '--no-plots', 'a fleet replay writes no plots'),
-    ('map', '--map', 'a fleet replay has no pose graph to place the clouds with'),
+    ('map', '--map', 'a fleet replay writes no map of clouds'),
 )
 
 

@@ -12,14 +12,15 @@ import numpy.typing as npt
 from solid_ros.tools.evaluation import Evaluation
 from solid_ros.tools.loops import LoopRecord
 
-__all__ = ['PLOT_FILES', 'write_plots']
+__all__ = ['PLOT_FILES', 'pyplot', 'write_plots']
 
 PLOT_FILES = ('pr_curve.png', 'trajectory.png', 'distance_hist.png', 'yaw_error_hist.png',
               'verification.png', 'pose_error_hist.png')
 _TRUE, _FALSE, _GREY = '#1b9e4b', '#d7301f', '#9a9a9a'
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
+    """matplotlib.pyplot on the Agg backend (imported on first use)."""
     import matplotlib
 
     matplotlib.use('Agg')
@@ -230,7 +231,7 @@ def write_plots(out_dir: str | Path, ev: Evaluation, positions: npt.ArrayLike,
         estimates: (K, 3) positions per keyframe drawn beside the reference on the
             trajectory plot, by name (``'odometry'``, ``'corrected'``), already aligned.
     """
-    plt = _pyplot()
+    plt = pyplot()
     out = Path(out_dir)
     pos = np.asarray(positions, dtype=np.float64)
     m = np.asarray(match, dtype=np.intp)

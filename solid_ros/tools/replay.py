@@ -173,9 +173,11 @@ def build_parser() -> argparse.ArgumentParser:
                     'threshold, ROC AUC, yaw error, ATE / RPE of the odometry and of the '
                     'corrected trajectory; write candidates.csv, report.json, '
                     'trajectory.tum/.kitti and plots with --out.',
-        epilog='With several bags (a fleet) --poses, --times, --load-db, --save-db, '
-               '--no-plots and --map mean nothing and are ignored, one line each saying why; '
-               'the other options apply to every robot. '
+        epilog='With several bags (a fleet) --poses, --times, --load-db, --save-db '
+               'and --map mean nothing and are ignored, one line each saying why; '
+               'the other options apply to every robot; with the back end each robot places '
+               "the others' maps in its own, and --out gets trajectory_robot<i>.tum in robot "
+               "0's map and fleet_map.png. "
                'Reference poses come from --poses (KITTI 3x4 rows, paired with scans by order '
                'or by --times stamps; or TUM "stamp tx ty tz qx qy qz qw") or else from the '
                "bag's Odometry topic. A query has a true loop when an earlier scan outside the "
@@ -185,7 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='ROS 2 bag directory (MCAP or sqlite3) or ROS 1 .bag file; several '
                         'bags = a fleet, one robot each (robot i = session_id i), which share '
                         'keyframes as nodes with peers do and are scored on '
-                        'inter-robot loops (each needs an Odometry topic in one world frame)')
+                        'inter-robot loops (each needs an Odometry topic in one world frame: the '
+                        'reference)')
     p.add_argument('--params', metavar='FILE.yaml',
                    help='ROS 2 parameter file as given to the node (default: built-in '
                         "defaults = the SOLiD authors' parameters)")
@@ -342,7 +345,8 @@ def _fleet_options(args: argparse.Namespace) -> ReplayOptions:
 def _run_fleet(bags: list[str], config: SolidConfig, options: ReplayOptions,
                quiet: bool) -> int:
     fleet = replay_fleet(bags, config, options)
-    files = write_fleet_outputs(options.out_dir, fleet) if options.out_dir else []
+    files = (write_fleet_outputs(options.out_dir, fleet, options.plots) if options.out_dir
+             else [])
     if not quiet:
         print('\n'.join(fleet_summary_lines(fleet, PROG)))
         if files:

@@ -557,8 +557,10 @@ def _fingerprint() -> str:
 
 def attack_big_replies(rig: Rig, data: Hku1, out: Result) -> Callable[[int], None]:
     pub = rig.publisher(REPLY_TOPIC)
-    pts = np.random.default_rng(2).uniform(-50, 50, size=(2_000_000, 3)).astype(np.float32)
-    raw = encode(CloudReply(FAKE, 0, 1, 2, 3, KeyframeCloud(pts, 1000)))
+    # A reply announcing a small cloud padded to 24 MB (clouds go packed: 2 million points
+    # would no longer make a big message).
+    pts = np.random.default_rng(2).uniform(-50, 50, size=(2_000, 3)).astype(np.float32)
+    raw = encode(CloudReply(FAKE, 0, 1, 2, 3, KeyframeCloud(pts, 1000))) + bytes(24_000_000)
 
     def each(sent: int) -> None:
         if sent % 15 == 0 and sent <= 300:  # 20 of them, 24 MB each

@@ -47,6 +47,7 @@ from solid_ros.formats.peers import (  # noqa: E402
     decode,
     encode,
     is_sealed,
+    reply_bytes,
     seal,
 )
 from solid_ros.formats.poses import read_kitti_poses  # noqa: E402
@@ -419,8 +420,9 @@ def test_floods_stay_bounded(fleet: Fleet, capfd: pytest.CaptureFixture[str]) ->
     # Oversized last: the subscription that got one is re-created (when idle), and what is
     # published while the new one is matched is lost.
     attacker.send(DESCRIPTOR_TOPIC, b'SLD\x02' + bytes(3_000_000))
+    # (A packed cloud of 200 000 equal points is small: the padding makes the reply big.)
     attacker.send(REPLY_TOPIC, encode(CloudReply(7, 0, 1, 2, 3, KeyframeCloud(
-        np.zeros((200_000, 3), np.float32), 1))))
+        np.zeros((10, 3), np.float32), 1))) + bytes(reply_bytes(200_000)))
     try:
         fleet.wait_for(lambda: counts['oversized'] >= 2 and counts['rate_limited'] >= 1
                        and counts['robots_full'] >= 1, 'refusals counted', 60.0)

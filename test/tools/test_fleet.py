@@ -148,8 +148,7 @@ def test_cli_takes_every_option_and_ignores_those_of_one_bag_with_a_line_each(
             ('--times', 'it goes with --poses'),
             ('--load-db', 'each robot starts a database of its own'),
             ('--save-db', 'each robot has a database of its own; none is saved'),
-            ('--no-plots', 'a fleet replay writes no plots'),
-            ('--map', 'a fleet replay has no pose graph to place the clouds with'))]
+            ('--map', 'a fleet replay writes no map of clouds'))]
     assert not db.exists()
     report = json.loads((out / 'report.json').read_text())
     assert report['odometry_fed'] == 'none' and report['max_heading_deg'] == 30.0

@@ -83,16 +83,15 @@ def test_single_bag_options_are_named() -> None:
     assert ReplayOptions(radius=2.0, topic='/p', out_dir='o', use_odom=False,
                          max_heading_deg=30.0).single_bag() == []
     opts = ReplayOptions(poses='p', save_db='d', use_odom=False, plots=False)
-    assert opts.single_bag() == [('poses', '--poses'), ('save_db', '--save-db'),
-                                 ('plots', '--no-plots')]
+    assert opts.single_bag() == [('poses', '--poses'), ('save_db', '--save-db')]
 
 
 def test_for_fleet_drops_the_options_of_one_bag_with_a_line_each() -> None:
     opts = ReplayOptions(poses='p', times='t', load_db='l', save_db='d', plots=False,
                          map=True, radius=2.0, use_odom=False, max_heading_deg=30.0)
     fleet, lines = opts.for_fleet()
-    assert fleet == ReplayOptions(radius=2.0, use_odom=False, max_heading_deg=30.0)
-    flags = ['--poses', '--times', '--load-db', '--save-db', '--no-plots', '--map']
+    assert fleet == ReplayOptions(radius=2.0, use_odom=False, max_heading_deg=30.0, plots=False)
+    flags = ['--poses', '--times', '--load-db', '--save-db', '--map']
     assert [line.split(' (')[0] for line in lines] == [
         f'ignored for a fleet replay: {flag}' for flag in flags]
     assert all(line.endswith(')') and len(line) < 100 for line in lines), lines

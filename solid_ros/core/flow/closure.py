@@ -31,10 +31,16 @@ transform from.
 A saved database loaded with :meth:`LoopClosure.load` brings its scans (searched and verified
 against) and, with the back end on, its keyframes' map-frame poses as the fixed prior map the
 session relocalises in.
+
+Other robots (:attr:`LoopClosure.fleet`, with the back end on): the inter-robot loops this
+robot publishes, and those a peer publishes against it (:meth:`LoopClosure.add_peer_loop`),
+stay out of the pose graph; :meth:`LoopClosure.align` places each peer's map in this robot's
+from them and the peers' keyframe poses (:mod:`solid_ros.core.backend.alignment`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -43,13 +49,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.backend.alignment import AlignmentSettings, FleetAlignment
 from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Proposal
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.geometry import pose_to_vector
 from solid_ros.core.odometry.track import OdometrySource, OdomSample
-from solid_ros.core.results import ScanResult
+from solid_ros.core.results import BackendEvent, LoopCandidate, ScanResult
 from solid_ros.core.stamps import check_stamp
 
 if TYPE_CHECKING:
@@ -105,6 +112,13 @@ class LoopClosure:
             graph = PoseGraph(detector.config)
         self.graph = graph
         self._hint: GraphHint | None = None
+        self.fleet: FleetAlignment | None = None
+        self._new_fleet()
+
+    def _new_fleet(self) -> None:
+        cfg = self.detector.config
+        self.fleet = (None if self.graph is None else
+                      FleetAlignment(cfg.session_id, AlignmentSettings.from_config(cfg)))
 
     @classmethod
     def load(cls, path: str | Path, config: SolidConfig,
@@ -192,11 +206,31 @@ class LoopClosure:
         state = self.graph.update(result, odom)
         if not state.added:
             return Step(result, odom, state)
+        if self.fleet is not None:
+            for loop in result.loops:
+                self.fleet.add(loop)
         self._hint = GraphHint.from_keyframes(
             self.graph.keyframes(), state.correction, state.covariance,
             partial(self.graph.relative_covariance, index_b=state.index),
             self.graph.placed_map())
         return Step(result, odom, state, self._hint)
+
+    # -- other robots ------------------------------------------------------------------------
+
+    def add_peer_loop(self, loop: LoopCandidate, robot: int) -> bool:
+        """Hold a loop that robot ``robot`` published against this robot's keyframe (False:
+        back end off, or not such a loop; see :meth:`FleetAlignment.add`)."""
+        return self.fleet is not None and self.fleet.add(loop, by=robot)
+
+    def align(self, peers: Mapping[int, Mapping[int, FloatArray]],
+              paths: Mapping[int, Mapping[int, float]] | None = None) -> list[BackendEvent]:
+        """Place every peer's map in this robot's again, from the loops held and the maps as
+        they are now (the graph's poses, and ``peers``: each peer's keyframe poses in its
+        own map, by index; ``paths``: see :meth:`FleetAlignment.solve`); returns the lines
+        to log."""
+        if self.fleet is None or self.graph is None:
+            return []
+        return self.fleet.solve(self.graph.poses(), peers, paths)
 
     # -- the session -------------------------------------------------------------------------
 
@@ -223,3 +257,4 @@ class LoopClosure:
         self._hint = None
         if self.graph is not None:
             self.graph.reset()
+        self._new_fleet()  # its loops name keyframes that are gone

@@ -81,7 +81,7 @@ from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Hit, Proposal
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.clouds import CloudStore, KeyframeCloud
-from solid_ros.core.database.descriptors import DescriptorDatabase, unit_vector
+from solid_ros.core.database.descriptors import PEER_SEQ_BASE, DescriptorDatabase, unit_vector
 from solid_ros.core.descriptor.matching import estimate_yaw, heading_hypotheses
 from solid_ros.core.descriptor.mount import Mount
 from solid_ros.core.descriptor.solid import describe, preprocess, voxel_downsample
@@ -117,7 +117,7 @@ from solid_ros.core.verification.calibration import (
 from solid_ros.core.verification.judge import Bars, Measures, judge
 from solid_ros.core.verification.judge import bars as judge_bars
 from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
-from solid_ros.core.verification.registration import Query, coarsened
+from solid_ros.core.verification.registration import Query, coarsened, for_peers
 from solid_ros.core.verification.verifier import TIGHT_GRID, Verification, Verifier
 
 __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
@@ -444,8 +444,10 @@ class LoopDetector:
         for c in attempts:
             if c.reason not in ('verified', 'descriptor'):
                 continue
-            if len(taken) >= cfg.max_candidates or gap_blocked:
+            if gap_blocked:
                 break
+            if sum(self._is_peer(t) == self._is_peer(c) for t in taken) >= cfg.max_candidates:
+                continue  # this robot's and its maps' places, and peers', each up to the cap
             if any(c.match_session == t.match_session
                    and abs(c.match_index - t.match_index) <= cfg.margin_neighbourhood
                    for t in taken):
@@ -637,12 +639,18 @@ class LoopDetector:
         # query's place from elsewhere, then the descriptor's others, and last, asked only
         # now, those that share the query's structure.
         hits = proposal.hits
+        peer = [h.match.seq >= PEER_SEQ_BASE for h in hits]
         for group in ([i for i, h in enumerate(hits) if h.near],
                       [i for i, h in enumerate(hits) if h.view and not h.near],
-                      [i for i, h in enumerate(hits) if not (h.near or h.view)]):
+                      [i for i, h in enumerate(hits) if not (h.near or h.view or peer[i])]):
             if gap_blocked or len(verified) >= self._config.max_candidates:
                 break
             self._register(proposal, query, group, clouds, results, yaws, verified)
+        # Peers' places have a budget of their own: the graph's near keyframes verify first
+        # and would otherwise leave none to the inter-robot loops a fleet is placed by.
+        if not gap_blocked and any(peer):
+            self._register(proposal, query, [i for i in range(len(hits)) if peer[i]], clouds,
+                           results, yaws, [])
         if more is not None and not gap_blocked and len(verified) < self._config.max_candidates:
             extra = more()
             start = len(hits)
@@ -658,6 +666,11 @@ class LoopDetector:
                 out.append(self._candidate(proposal, hit, yaws.get(i, 0.0), res))
         out.sort(key=lambda c: (not c.verified, -_nan_to(c.overlap, -1.0)))
         return out
+
+    def _is_peer(self, c: LoopCandidate) -> bool:
+        """A loop to another robot's keyframe (not this session's, not a loaded map's)."""
+        return (c.match_session != self._config.session_id
+                and (c.match_session, c.match_index) not in self._map_seqs)
 
     def _candidate_clouds(self, proposal: Proposal, gap_blocked: bool
                           ) -> tuple[list[KeyframeCloud | None], dict[int, Verification]]:
@@ -774,6 +787,11 @@ class LoopDetector:
         cloud = None if seq is None else self.clouds.get(seq)
         # Peers keep the configuration's grid: a tight-space cloud goes out on it.
         return None if cloud is None else coarsened(cloud, self._config.verify_voxel_size)
+
+    def peer_cloud(self, index: int) -> KeyframeCloud | None:
+        """:meth:`own_cloud` as a peer gets it: the ground thinned (:func:`for_peers`)."""
+        cloud = self.own_cloud(index)
+        return None if cloud is None else for_peers(cloud, self._config.verify_voxel_size)
 
     # --------------------------------------------------------------------------- persistence
 

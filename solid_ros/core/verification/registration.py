@@ -33,7 +33,7 @@ from solid_ros.core.geometry import rot_z
 
 __all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'Query',
            'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine', 'coarsened',
-           'load_small_gicp']
+           'for_peers', 'load_small_gicp']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -222,6 +222,26 @@ def coarsened(cloud: KeyframeCloud, voxel: float) -> KeyframeCloud:
     struct = voxel_downsample(cloud.points[:cloud.n_struct], voxel)
     rest = voxel_downsample(cloud.points[cloud.n_struct:], voxel)
     return KeyframeCloud(np.concatenate([struct, rest]).astype(np.float32), len(struct), voxel)
+
+
+PEER_GROUND_SCALE = 2.0  # a cloud sent to a peer keeps its ground on this many voxels
+
+
+def for_peers(cloud: KeyframeCloud, voxel: float) -> KeyframeCloud:
+    """``cloud`` as a peer gets it: its structure as it is, the rest (the ground) on a grid
+    of ``PEER_GROUND_SCALE * voxel``, with its grid said (``voxel`` when it was the
+    configuration's: the reply's quantisation follows it).
+
+    Structure alone holds the horizontal position and heading but starves the overlap,
+    conflict and single-object measures: on the simulated fleet it verified 1 of 55
+    inter-robot loops. How far the ground can thin was measured on hku1 cut in two robots
+    (Avia, ground-heavy; 36 places found with whole clouds): 4 voxels 28, 3 voxels 29,
+    2 voxels 32-35, 1.5 voxels 34; the simulated fleet kept 55 of 55 at 4 voxels. At 2 voxels
+    a cloud keeps about a quarter of its ground points."""
+    n = int(cloud.n_struct)
+    rest = voxel_downsample(cloud.points[n:], PEER_GROUND_SCALE * voxel)
+    return KeyframeCloud(np.concatenate([cloud.points[:n], rest]).astype(np.float32), n,
+                         cloud.voxel if cloud.voxel > 0.0 else voxel)
 
 
 class Source:
