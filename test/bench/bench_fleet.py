@@ -29,9 +29,10 @@ from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE.parent), str(HERE.parent / 'ros')]
+sys.path[:0] = [str(HERE.parent), str(HERE.parent / 'ros'), str(HERE)]
 
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from report import PrintedReport, bench_meta  # noqa: E402
 from std_msgs.msg import UInt8MultiArray  # noqa: E402
 from test_fleet_processes import PHASES, Robots  # noqa: E402
 from test_peer_link import _check, _scan  # noqa: E402
@@ -102,6 +103,17 @@ def _ms(values: list[float]) -> str:
 
 
 def main() -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(description=(__doc__ or '').splitlines()[0])
+    p.add_argument('--report', type=Path,
+                   help='also write what is printed, with date and commit (.md: doc/reports)')
+    args = p.parse_args()
+    with PrintedReport(args.report, bench_meta('bench_fleet', vars(args))):
+        return _run()
+
+
+def _run() -> int:
     for i in {i for ph in PHASES for s in ph.values() for i in s}:
         _scan(i)  # simulate first, so the feed keeps its pace
     with tempfile.TemporaryDirectory() as tmp:

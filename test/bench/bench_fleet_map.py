@@ -30,9 +30,10 @@ from pathlib import Path
 import pytest
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE.parent), str(HERE.parent / 'tools')]
+sys.path[:0] = [str(HERE.parent), str(HERE.parent / 'tools'), str(HERE)]
 
 from project_paths import SHARED_DATA  # noqa: E402
+from report import PrintedReport, bench_meta  # noqa: E402
 from test_fleet_map import (  # noqa: E402
     Fleet,
     _false_loop,
@@ -87,7 +88,14 @@ def _run(name: str, fleet: Fleet) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--fleets', default='hku1,sim')
+    parser.add_argument('--report', type=Path,
+                        help='also write what is printed, with date and commit (.md: doc/reports)')
     args = parser.parse_args()
+    with PrintedReport(args.report, bench_meta('bench_fleet_map', vars(args))):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.fleets.split(','):
             (Path(tmp) / name).mkdir()
