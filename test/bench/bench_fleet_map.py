@@ -92,10 +92,10 @@ def main() -> int:
                         help='also write what is printed, with date and commit (.md: doc/reports)')
     args = parser.parse_args()
     with PrintedReport(args.report, bench_meta('bench_fleet_map', vars(args))):
-        return _run(args)
+        return _fleets(args)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _fleets(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.fleets.split(','):
             (Path(tmp) / name).mkdir()
