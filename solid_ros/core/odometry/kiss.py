@@ -25,6 +25,9 @@ cannot be registered when:
   (:class:`~solid_ros.core.odometry.guard.OverlapGuard`: a jump in the input that KISS-ICP
   followed only part of the way, as it does: its correspondences reach a few metres).
 
+A cloud that jumps or does not overlap when aligned from KISS-ICP's own guess is aligned again
+from a time-scaled and a standstill guess (:mod:`solid_ros.core.odometry.kiss_step`); only when
+none passes does the source reset, and a failed alignment never enters KISS-ICP's map.
 A degenerate or non-overlapping cloud is itself a good cloud: it becomes the first cloud of the
 new segment. Clouds with too few points are dropped and the next one starts the segment.
 Clouds that lose some points (NaN rows) are counted in :attr:`KissOdometry.input_counts`.
@@ -45,6 +48,7 @@ import numpy.typing as npt
 from solid_ros.core.config import NodeConfig
 from solid_ros.core.errors import SolidError
 from solid_ros.core.odometry.guard import Frame, OverlapGuard, derive_settings, prepare
+from solid_ros.core.odometry.kiss_step import Aligned, align, commit, guesses, prepared
 from solid_ros.core.odometry.track import OdomSample, Points
 
 __all__ = ['MIN_POINTS', 'KissOdometry', 'derive_settings', 'load_kiss_icp']
@@ -91,6 +95,8 @@ class KissOdometry:
             no cloud yet is counted but starts no further segment), and 'requested'
             (:meth:`reset`).
         input_counts: clouds that lost points: 'nan' (rows with a non-finite coordinate).
+        recovered: clouds whose registration from KISS-ICP's guess failed the checks and that
+            registered from another guess instead, by guess ('time-scaled', 'standstill').
         registered: clouds registered.
     """
 
@@ -111,6 +117,8 @@ class KissOdometry:
         self._prev: Frame | None = None
         self._guard: OverlapGuard | None = None
         self._stamp: int | None = None
+        self._stamps: tuple[int | None, int | None] = (None, None)  # segment's last two
+        self.recovered: Counter[str] = Counter()
         self._pending: str | None = None  # reset reason for the next sample
 
     def _new_kiss(self) -> Any:
@@ -189,38 +197,65 @@ class KissOdometry:
 
     def _register(self, frame: FloatArray, times: FloatArray,
                   check: Frame) -> tuple[str, str] | None:
-        """Register one cloud; on success keep it, else return (kind, reason)."""
+        """Register one cloud; on success keep it, else return (kind, reason).
+
+        It is aligned from KISS-ICP's guess; when that fails the checks, from the other
+        guesses (:func:`~solid_ros.core.odometry.kiss_step.guesses`) before giving up.
+        """
         fresh = self._kiss is None
         kiss = self._new_kiss() if fresh else self._kiss
-        before = np.array(kiss.last_pose, dtype=np.float64)
-        predicted = before @ np.asarray(kiss.last_delta, dtype=np.float64)
+        first: tuple[str, str] | None = None
         try:
-            kiss.register_frame(frame, times)
-            new = np.array(kiss.last_pose, dtype=np.float64)
+            source, map_points = prepared(kiss, frame, times)
+            for label, guess in guesses(kiss, None if fresh else self._ratio()):
+                step = align(kiss, source, map_points, guess)
+                if step.pose.shape != (4, 4) or not np.all(np.isfinite(step.pose)):
+                    return 'failed', 'KISS-ICP returned a non-finite pose'
+                why, overlap = (None, None) if fresh else self._check(kiss, step, check)
+                if why is None:
+                    commit(kiss, step)
+                    kept = label
+                    break
+                first = first or why
+            else:
+                return first
         except Exception as err:  # the binding may raise anything
             return 'failed', f'KISS-ICP failed: {" ".join(str(err).split())[:160]}'
-        if new.shape != (4, 4) or not np.all(np.isfinite(new)):
-            return 'failed', 'KISS-ICP returned a non-finite pose'
-        overlap = None
-        if not fresh and self._prev is not None and self._guard is not None:
-            step = np.linalg.inv(before) @ new
-            jump = max(float(np.linalg.norm(step[:3, 3])),
-                       float(np.linalg.norm((np.linalg.inv(predicted) @ new)[:3, 3])))
-            if jump > self.max_step_m:
-                return 'jump', f'registration jumped {jump:.2f} m (> {self.max_step_m:g} m)'
-            overlap = self._guard.overlap(check, self._prev, step)
-            if self._guard.fails(overlap):
-                return 'overlap', (f'cloud does not overlap the previous one where KISS-ICP '
-                                   f'put it: {overlap:.2f} of its structure within '
-                                   f'{self._guard.reach:g} m, below {self._guard.bar:.2f} '
-                                   f"({self._guard.ratio:g} x the run's "
-                                   f'{self._guard.typical:.2f})')
+        if first is not None:
+            self.recovered[kept] += 1
         if overlap is not None and self._guard is not None:
             self._guard.accept(overlap)
         self._kiss, self._prev = kiss, check
-        self._pose = self._origin @ new
+        self._pose = self._origin @ step.pose
+        self._stamps = (self._stamps[1], self._stamp)
         self.registered += 1
         return None
+
+    def _ratio(self) -> float | None:
+        """Time since the segment's last cloud over the time between its two before."""
+        older, last = self._stamps
+        if older is None or last is None or self._stamp is None or last <= older:
+            return None
+        return (self._stamp - last) / (last - older)
+
+    def _check(self, kiss: Any, step: Aligned,
+               check: Frame) -> tuple[tuple[str, str] | None, float | None]:
+        """(kind, reason) when the aligned cloud jumps or does not overlap, and its overlap."""
+        if self._prev is None or self._guard is None:
+            return None, None
+        last = np.asarray(kiss.last_pose, dtype=np.float64)
+        move = np.linalg.inv(last) @ step.pose
+        jump = max(float(np.linalg.norm(move[:3, 3])),
+                   float(np.linalg.norm((np.linalg.inv(step.guess) @ step.pose)[:3, 3])))
+        if jump > self.max_step_m:
+            return ('jump', f'registration jumped {jump:.2f} m (> {self.max_step_m:g} m)'), None
+        overlap = self._guard.overlap(check, self._prev, move)
+        if self._guard.fails(overlap):
+            return ('overlap', f'cloud does not overlap the previous one where KISS-ICP put '
+                    f'it: {overlap:.2f} of its structure within {self._guard.reach:g} m, below '
+                    f"{self._guard.bar:.2f} ({self._guard.ratio:g} x the run's "
+                    f'{self._guard.typical:.2f})'), overlap
+        return None, overlap
 
     def _prepare(self, frame: FloatArray) -> Frame:
         """Voxelise as KISS-ICP does for registration, then normals, structure, constraint."""
@@ -242,7 +277,7 @@ class KissOdometry:
         if self._kiss is None:
             note = f'odometry segment {self.segment} still has no cloud: {reason}'
         else:
-            self._kiss, self._prev = None, None
+            self._kiss, self._prev, self._stamps = None, None, (None, None)
             self._origin = self._pose.copy()
             self.segment += 1
             self.resets += 1
