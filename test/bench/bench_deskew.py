@@ -4,12 +4,14 @@ per-point times, plain KISS-ICP beside solid_ros's odometry.
 The simulator casts a scan at one pose. A sweep that takes time is built from ``--sectors``
 scans cast along the motion from the previous pose to this one: sector k of the azimuth
 (starting behind the sensor, turning counter-clockwise) is taken from the scan at time
-(k + 0.5) / sectors and expressed in the sensor frame at the end of the sweep (the scan's
-reference pose), each point with its time. KISS-ICP registers the sweeps with their times
-(deskew) or without (as a driver without a time field gives them). The ground is dropped:
-the simulator's exact ground plane sampled in the same rings holds point-to-point ICP in place
-(``test/core/odometry/test_kiss.py``). The drive turns at its first crossing (the street
-block is 50 m), at ``--spacing`` metres per sweep (1.5 m: 54 km/h at 10 Hz).
+(k + 0.5) / sectors, in the sensor frame of that time, as a sensor reports it, each point with
+its time; the sweep's reference pose is the one at its end. KISS-ICP registers the sweeps
+with their times (deskew) or without (as a driver without a time field gives them). The
+ground is dropped: the simulator's exact ground plane sampled in the same rings holds
+point-to-point ICP in place (``test/core/odometry/test_kiss.py``). The drive turns at its
+first crossing (the street block is 50 m), at ``--spacing`` metres per sweep (1.5 m: 54 km/h
+at 10 Hz). Measured on 2026-11-28 (doc/odometry.md), deskew made both worse here: an open
+question.
 
 Prints ATE (SE(3)-aligned) and end error for: plain KISS-ICP without times, plain with times,
 ours without times, ours with times (``kiss_deskew`` on, the default), and ms per cloud.
@@ -41,9 +43,9 @@ FloatArray = npt.NDArray[np.float64]
 
 
 def sweep(drive: Drive, index: int, sectors: int) -> tuple[FloatArray, FloatArray]:
-    """Points of sweep ``index`` in its end pose's frame, and their times in [0, 1]."""
+    """Points of sweep ``index``, each in the sensor frame at its time, and their times in
+    [0, 1]."""
     t = drive.trajectory
-    end = drive.pose(index)
     rng = np.random.default_rng([drive.config.seed, index])
     points, times = [], []
     for k in range(sectors):
@@ -55,9 +57,7 @@ def sweep(drive: Drive, index: int, sectors: int) -> tuple[FloatArray, FloatArra
         xyz = cloud[:, :3].astype(np.float64)
         azimuth = (np.arctan2(xyz[:, 1], xyz[:, 0]) + np.pi) / (2 * np.pi)  # 0 behind
         keep = (azimuth >= k / sectors) & (azimuth < (k + 1) / sectors) & (xyz[:, 2] > -1.4)
-        at = drive._sensor_pose(float(x), float(y), yaw)
-        rel = np.linalg.inv(end) @ at
-        points.append(xyz[keep] @ rel[:3, :3].T + rel[:3, 3])
+        points.append(xyz[keep])  # as the sensor reports them: in its frame at their time
         times.append(azimuth[keep])
     return np.concatenate(points), np.concatenate(times)
 
