@@ -499,26 +499,32 @@ class NodeConfig(_Schema):
                               "bag's Odometry or a poses file) or 'kiss_icp' (KISS-ICP "
                               'registers the clouds; pip install kiss-icp)',
                               choices=('topic', 'kiss_icp'), read_only=True)
-    kiss_max_range: float = _p(50.0, 'KISS-ICP: points beyond this range are not registered, '
-                               'metres', low=1.0, high=1000.0, read_only=True)
+    kiss_max_range: float = _p(0.0, 'KISS-ICP: points beyond this range are not registered, '
+                               'metres; 0 = from the data (99th percentile of the first '
+                               "cloud's ranges)", low=0.0, high=1000.0, read_only=True)
     kiss_min_range: float = _p(0.0, 'KISS-ICP: points within this range are not registered '
                                '(the vehicle itself), metres', low=0.0, high=100.0,
                                read_only=True)
-    kiss_voxel_size: float = _p(0.5, "KISS-ICP: voxel of its local map, metres (KISS-ICP's "
-                                'rule of thumb: max range / 100)', low=0.05, high=10.0,
+    kiss_voxel_size: float = _p(0.0, "KISS-ICP: voxel of its local map, metres; 0 = KISS-ICP's "
+                                'own rule, max range / 100', low=0.0, high=10.0,
                                 read_only=True)
-    kiss_deskew: bool = _p(False, 'KISS-ICP: motion compensation within a sweep; needs '
-                           'per-point times, which clouds often lack (without them it has no '
-                           'effect)', read_only=True)
-    kiss_max_step_m: float = _p(5.0, 'KISS-ICP: a registration that moves the sensor farther '
+    kiss_deskew: bool = _p(True, 'KISS-ICP: motion compensation within a sweep, for clouds '
+                           "that carry per-point times (Ouster 't', Livox 'offset_time' or "
+                           "'timestamp', Velodyne 'time', or kiss_time_field); clouds without "
+                           'them are registered as they are', read_only=True)
+    kiss_time_field: str = _p('', 'KISS-ICP: name of the per-point time field of the clouds '
+                              '(any numeric type, normalised over each sweep); empty = the '
+                              'first of t, offset_time, timestamp, time', read_only=True)
+    kiss_max_step_m: float = _p(0.0, 'KISS-ICP: a registration that moves the sensor farther '
                                 'than this from its last pose or from the constant-velocity '
-                                'prediction is a jump: reset, new odometry segment, metres',
-                                low=0.01, high=10000.0, read_only=True)
-    kiss_min_overlap: float = _p(0.3, 'KISS-ICP: least fraction of the structure points of a '
-                                 'registered cloud within two voxels of the previous cloud; '
-                                 'below it the cloud did not register (a jump in the input): '
-                                 'reset, new segment (0 = off)', low=0.0, high=1.0,
-                                 read_only=True)
+                                'prediction is a jump: reset, new odometry segment, metres; '
+                                '0 = half the max range', low=0.0, high=10000.0,
+                                read_only=True)
+    kiss_min_overlap: float = _p(0.5, 'KISS-ICP: a registered cloud whose overlap with the '
+                                 'previous cloud (its structure points within two voxels) is '
+                                 "below this times the run's median overlap did not register "
+                                 '(a jump in the input): reset, new segment (0 = off)',
+                                 low=0.0, high=1.0, read_only=True)
     kiss_min_constraint: float = _p(0.01, 'KISS-ICP: least horizontal constraint of a cloud '
                                     '(smallest eigenvalue of the mean n n^T over its points of '
                                     'the x-y part of planar normals; about 0 in a corridor); '
@@ -561,7 +567,7 @@ class NodeConfig(_Schema):
                                  low=1.0, high=3600.0, read_only=True)
 
     def _validate_cross(self) -> None:
-        if self.kiss_max_range <= self.kiss_min_range:
+        if 0 < self.kiss_max_range <= self.kiss_min_range:
             raise ConfigError(f'kiss_max_range: {self.kiss_max_range} must be greater than '
                               f'kiss_min_range ({self.kiss_min_range})')
 

@@ -23,7 +23,12 @@ import numpy.typing as npt
 from solid_ros.core.errors import BagError, CloudError
 from solid_ros.core.geometry import matrix_to_quaternion
 from solid_ros.formats.mcap_check import seal_crcs, verify_mcap
-from solid_ros.formats.pointcloud2 import CloudLayout, cloud_to_xyz, encode_points
+from solid_ros.formats.pointcloud2 import (
+    CloudLayout,
+    cloud_point_times,
+    cloud_to_xyz,
+    encode_points,
+)
 from solid_ros.formats.poses import PoseError, PoseTrack, odometry_to_pose
 
 __all__ = [
@@ -55,6 +60,8 @@ class CloudScan:
         points: (N, 3) x, y, z (may be a read-only view), or None when it could not be decoded.
         error: why it could not be decoded, else None.
         frame_id: header frame.
+        times: per-point times normalised to [0, 1] over the sweep (None: the cloud has no
+            time field; see :func:`~solid_ros.formats.pointcloud2.cloud_point_times`).
     """
 
     seq: int
@@ -62,6 +69,7 @@ class CloudScan:
     points: npt.NDArray[np.floating] | None
     error: str | None = None
     frame_id: str = ''
+    times: npt.NDArray[np.float64] | None = None
 
 
 def _stamp_ns(header: Any, fallback: int) -> int:
@@ -180,8 +188,9 @@ class Bag:
     def _deserialize(self, raw: bytes, msgtype: str) -> Any:
         return self._reader.deserialize(raw, msgtype)
 
-    def clouds(self, topic: str) -> Iterator[CloudScan]:
-        """Yield every PointCloud2 of ``topic`` in bag order.
+    def clouds(self, topic: str, time_field: str = '') -> Iterator[CloudScan]:
+        """Yield every PointCloud2 of ``topic`` in bag order, with per-point times when the
+        clouds carry them (``time_field``, or the first of the drivers' usual names).
 
         Raises:
             BagError: topic missing or of another type; the bag is unreadable mid-way.
@@ -200,7 +209,8 @@ class Bag:
             except CloudError as err:
                 yield CloudScan(seq, stamp, None, str(err), frame)
                 continue
-            yield CloudScan(seq, stamp, points, None, frame)
+            times = cloud_point_times(msg, time_field)
+            yield CloudScan(seq, stamp, points, None, frame, None if times is None else times[0])
 
     def odometry(self, topic: str) -> PoseTrack:
         """Read all poses of an Odometry topic (header stamps; bad messages skipped).

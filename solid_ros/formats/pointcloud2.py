@@ -16,11 +16,17 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import CloudError
 
-__all__ = ['FLOAT32', 'FLOAT64', 'CloudLayout', 'Field', 'cloud_to_xyz', 'encode_points']
+__all__ = ['FLOAT32', 'FLOAT64', 'TIME_FIELDS', 'CloudLayout', 'Field', 'cloud_point_times',
+           'cloud_to_xyz', 'encode_points']
 
 # sensor_msgs/PointField datatype constants.
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
 _FLOAT_TYPES = {FLOAT32: 'f4', FLOAT64: 'f8'}
+_NUMERIC = {INT8: 'i1', UINT8: 'u1', INT16: 'i2', UINT16: 'u2', INT32: 'i4', UINT32: 'u4',
+            FLOAT32: 'f4', FLOAT64: 'f8'}
+# Per-point time fields of the common drivers: Ouster (t, ns), Livox (offset_time ns;
+# timestamp, absolute), Velodyne and Hesai (time, s), in the order they are looked for.
+TIME_FIELDS = ('t', 'offset_time', 'timestamp', 'time')
 _SIZES = {INT8: 1, UINT8: 1, INT16: 2, UINT16: 2, INT32: 4, UINT32: 4, FLOAT32: 4, FLOAT64: 8}
 
 
@@ -126,6 +132,50 @@ def cloud_to_xyz(msg: Any) -> npt.NDArray[np.floating]:
                      (height, width), (row_step, point_step)).reshape(n) for f in xyz]
     out_type = np.float32 if kinds == {FLOAT32} else np.float64
     return np.stack(cols, axis=1).astype(out_type)
+
+
+def cloud_point_times(msg: Any, field: str = '') -> tuple[npt.NDArray[np.float64], str] | None:
+    """Per-point times of a PointCloud2, normalised to [0, 1] over the sweep, as KISS-ICP's
+    deskew takes them, with the field's name.
+
+    Args:
+        msg: the PointCloud2 (any object with its attributes).
+        field: the time field's name; empty: the first of :data:`TIME_FIELDS` it has.
+
+    Returns:
+        (N,) times in point order (organised clouds row by row, as :func:`cloud_to_xyz`), and
+        the field; None when there is no such field of count 1, the data is too short, or
+        the times are not finite or do not spread (all equal).
+    """
+    try:
+        fields = {f.name: f for f in msg.fields}
+        height, width = int(msg.height), int(msg.width)
+        point_step, row_step = int(msg.point_step), int(msg.row_step)
+        big = bool(msg.is_bigendian)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    name = field or next((k for k in TIME_FIELDS if k in fields), '')
+    f = fields.get(name)
+    if f is None or int(f.datatype) not in _NUMERIC or int(f.count) != 1:
+        return None
+    row_step = row_step or width * point_step
+    try:
+        buf = _buffer(msg)
+    except CloudError:
+        return None
+    size = _SIZES[int(f.datatype)]
+    if (height <= 0 or width <= 0 or int(f.offset) < 0 or int(f.offset) + size > point_step
+            or buf.size < (height - 1) * row_step + width * point_step):
+        return None
+    dt = np.dtype(('>' if big else '<') + _NUMERIC[int(f.datatype)])
+    t = _strided(buf, dt, int(f.offset), (height, width),
+                 (row_step, point_step)).reshape(-1).astype(np.float64)
+    if not np.all(np.isfinite(t)):
+        return None
+    low, high = float(t.min()), float(t.max())
+    if high <= low:
+        return None
+    return (t - low) / (high - low), name
 
 
 def _strided(buf: npt.NDArray[np.uint8], dt: np.dtype[Any], offset: int,

@@ -86,4 +86,11 @@ class KissIO:
                                   'kiss_resets': self.resets}
         for kind, count in sorted(dict(self._source.reset_counts).items()):
             out[f'kiss_reset_{kind}'] = count
+        for kind, count in sorted(dict(self._source.input_counts).items()):
+            out[f'kiss_input_{kind}'] = count  # clouds that lost points (NaN rows)
+        for guess, count in sorted(dict(self._source.recovered).items()):
+            out[f'kiss_recovered_{guess.replace(" ", "_").replace("-", "_")}'] = count
+        typical = self._source.typical_overlap
+        if typical is not None:
+            out['kiss_typical_overlap'] = round(typical, 3)
         return out

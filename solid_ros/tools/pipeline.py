@@ -278,7 +278,7 @@ class ReplayPipeline:
         """Yield one record per cloud message, in bag order."""
         if self._bag is None:
             raise SolidError('the replay pipeline is not open')
-        clouds = self._bag.clouds(self.inputs.topic)
+        clouds = self._bag.clouds(self.inputs.topic, self.options.node_config.kiss_time_field)
         while True:
             t0 = time.perf_counter()
             scan = next(clouds, None)
@@ -293,8 +293,13 @@ class ReplayPipeline:
         if self._sensor is not None:
             self._sensor.add(scan.points)
         t0 = time.perf_counter()
-        odom = (self.odometry.pose_for(scan.stamp_ns, scan.points)
-                if self.odometry is not None else None)
+        odom = None
+        if self.odometry is not None and scan.times is not None and getattr(
+                self.odometry, 'takes_point_times', False):  # KISS-ICP deskews with them
+            odom = self.odometry.pose_for(scan.stamp_ns, scan.points,
+                                          point_times=scan.times)  # type: ignore[call-arg]
+        elif self.odometry is not None:
+            odom = self.odometry.pose_for(scan.stamp_ns, scan.points)
         t1 = time.perf_counter()
         try:
             step = self.closure.process(scan.points, scan.stamp_ns, odom)

@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 
 from solid_ros.core.errors import CloudError
-from solid_ros.formats.pointcloud2 import FLOAT32, FLOAT64, cloud_to_xyz, encode_points
+from solid_ros.formats.pointcloud2 import (
+    FLOAT32,
+    FLOAT64,
+    cloud_point_times,
+    cloud_to_xyz,
+    encode_points,
+)
 
 RNG = np.random.default_rng(7)
 XYZ = RNG.normal(scale=20.0, size=(50, 3))
@@ -160,3 +166,35 @@ def test_duplicate_or_overlapping_xyz_fields_are_refused() -> None:
     fields[2] = _field('z', 2, FLOAT32)
     with pytest.raises(CloudError, match="'x' and 'z' overlap"):
         cloud_to_xyz(_cloud(rec, fields))
+
+
+@pytest.mark.parametrize('name,ftype,code', [('t', 'u4', 6), ('offset_time', 'u4', 6),
+                                             ('timestamp', 'f8', FLOAT64),
+                                             ('time', 'f4', FLOAT32), ('stamp', 'i2', 3)])
+def test_point_times_of_each_drivers_field_normalised_over_the_sweep(
+        name: str, ftype: str, code: int) -> None:
+    rec = np.zeros(50, dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'), ('i', 'u1'),
+                              (name, ftype)])
+    raw = np.arange(50)[::-1] * 7 + (1000 if ftype != 'i2' else 0)
+    rec[name] = raw * (1e-6 if ftype.startswith('f') else 1)
+    fields = [_field('x', 0, FLOAT32), _field('y', 4, FLOAT32), _field('z', 8, FLOAT32),
+              _field('i', 12, 2), _field(name, 13, code)]
+    got = cloud_point_times(_cloud(rec, fields), 'stamp' if name == 'stamp' else '')
+    assert got is not None and got[1] == name
+    np.testing.assert_allclose(got[0], (raw - raw.min()) / (raw.max() - raw.min()), atol=1e-5)
+
+
+def test_no_usable_time_field_gives_none() -> None:
+    rec = np.zeros(20, dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'), ('t', 'f4')])
+    fields = [_field('x', 0, FLOAT32), _field('y', 4, FLOAT32), _field('z', 8, FLOAT32)]
+    assert cloud_point_times(_cloud(rec, fields)) is None  # no field
+    fields.append(_field('t', 12, FLOAT32))
+    assert cloud_point_times(_cloud(rec, fields)) is None  # all equal
+    rec['t'][3] = np.nan
+    assert cloud_point_times(_cloud(rec, fields)) is None  # not finite
+    rec['t'] = np.arange(20)
+    assert cloud_point_times(_cloud(rec, fields), 'offset_time') is None  # not that field
+    short = _cloud(rec, fields)
+    short.data = short.data[:40]
+    assert cloud_point_times(short) is None
+    assert cloud_point_times(object()) is None

@@ -15,6 +15,10 @@ from solid_ros.tools import presets
 
 # The full files before they were trimmed (see its 'about').
 BEFORE = json.loads((Path(__file__).parent / 'preset_values_7f254e1.json').read_text())
+# Defaults changed on purpose since then (issue 35: KISS-ICP's max range, voxel and jump limit
+# from the data, its overlap bar calibrated on the run, deskew wherever clouds carry times).
+REDEFINED = {'kiss_max_range', 'kiss_voxel_size', 'kiss_deskew', 'kiss_max_step_m',
+             'kiss_min_overlap'}
 SHIPPED = sorted(p for p in CONFIG_DIR.glob('*.yaml')
                  if 'ros__parameters:' in p.read_text(encoding='utf-8'))
 SENSOR_PRESETS = [p for p in SHIPPED if p.name != presets.REFERENCE]
@@ -30,7 +34,8 @@ def test_shipped_files_are_up_to_date() -> None:
 
 @pytest.mark.parametrize('name', sorted(BEFORE['presets']))
 def test_trimmed_preset_loads_as_the_full_file_did(name: str) -> None:
-    want = BEFORE['defaults'] | BEFORE['presets'][name]
+    want = {k: v for k, v in (BEFORE['defaults'] | BEFORE['presets'][name]).items()
+            if k not in REDEFINED}
     got = _loaded(CONFIG_DIR / name)
     assert {k: got[k] for k in want} == want
     # What differs from a default is written out, never left to the default.

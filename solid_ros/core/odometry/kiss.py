@@ -3,7 +3,8 @@
 :class:`KissOdometry` implements :class:`~solid_ros.core.odometry.track.OdometrySource` over
 KISS-ICP (Vizzo et al., RA-L 2023; PyPI ``kiss-icp``, imported only when this source is
 built). Each cloud is registered with ``KissICP.register_frame`` exactly as KISS-ICP's own
-pipeline does, so a cloud it registers gets KISS-ICP's pose unchanged.
+pipeline does, so a cloud it registers gets KISS-ICP's pose unchanged. A max range or voxel of
+0 is taken from the first cloud (:func:`~solid_ros.core.odometry.guard.derive_settings`).
 
 A cloud KISS-ICP cannot register never raises and never moves the pose silently: the source
 resets (a fresh KISS-ICP), counts the reset and starts a new odometry segment
@@ -12,18 +13,24 @@ The new segment starts at the last accepted pose, a guess that no odometry suppo
 cannot be registered when:
 
 - it holds fewer than :data:`MIN_POINTS` finite points within the range gate (empty, NaN);
+- its stamp is older than the last cloud's (a replay restarted, a clock reset);
 - it is degenerate: its planar points leave a direction of horizontal translation (the
   sensor's x-y plane) unconstrained: a corridor, a single wall, ``kiss_min_constraint``;
 - KISS-ICP raises or returns a non-finite pose;
 - the registration jumps: the step from the last pose, or from the constant-velocity
-  prediction, is longer than ``kiss_max_step_m``;
-- it does not overlap the previous cloud where KISS-ICP put it: fewer than
-  ``kiss_min_overlap`` of its structure points lie within two voxels of the previous cloud
-  (a jump in the input that KISS-ICP followed only part of the way, as it does: its
-  correspondences reach a few metres).
+  prediction, is longer than ``kiss_max_step_m`` (0: half the max range, beyond which two
+  clouds share too little to register);
+- it does not overlap the previous cloud where KISS-ICP put it: its overlap is below
+  ``kiss_min_overlap`` times the run's typical overlap
+  (:class:`~solid_ros.core.odometry.guard.OverlapGuard`: a jump in the input that KISS-ICP
+  followed only part of the way, as it does: its correspondences reach a few metres).
 
+A cloud that jumps or does not overlap when aligned from KISS-ICP's own guess is aligned again
+from a time-scaled and a standstill guess (:mod:`solid_ros.core.odometry.kiss_step`); only when
+none passes does the source reset, and a failed alignment never enters KISS-ICP's map.
 A degenerate or non-overlapping cloud is itself a good cloud: it becomes the first cloud of the
 new segment. Clouds with too few points are dropped and the next one starts the segment.
+Clouds that lose some points (NaN rows) are counted in :attr:`KissOdometry.input_counts`.
 No covariance is given: KISS-ICP reports none, and the back end uses its per-metre model.
 That model holds KISS-ICP's typical steps but not a runaway in a weak scene (hku1: steps
 0.6-0.8 m against 0.1-0.2 m of the reference): the back end checks a scan-only odometry with
@@ -33,7 +40,6 @@ registered steps (``backend_step_registration``, :mod:`solid_ros.core.backend.po
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -41,17 +47,15 @@ import numpy.typing as npt
 
 from solid_ros.core.config import NodeConfig
 from solid_ros.core.errors import SolidError
+from solid_ros.core.odometry.guard import Frame, OverlapGuard, derive_settings, prepare
+from solid_ros.core.odometry.kiss_step import Aligned, align, commit, guesses, prepared
 from solid_ros.core.odometry.track import OdomSample, Points
 
-__all__ = ['MIN_POINTS', 'KissOdometry', 'load_kiss_icp']
+__all__ = ['MIN_POINTS', 'KissOdometry', 'derive_settings', 'load_kiss_icp']
 
 FloatArray = npt.NDArray[np.float64]
 
 MIN_POINTS = 100  # finite points within the range gate a cloud needs to be registered
-_NEIGHBOURS = 10  # points per normal estimate
-_PLANAR = 3.0  # a point is planar when its 2nd covariance eigenvalue is this times the 1st
-_STRUCTURE_MAX_NZ = 0.7  # |n_z| below this: a wall, pole or trunk rather than the ground
-_MIN_STRUCTURE = 20  # fewer structure points than this: the overlap test is skipped
 
 
 def load_kiss_icp() -> tuple[Any, Any, Any]:
@@ -70,16 +74,6 @@ def load_kiss_icp() -> tuple[Any, Any, Any]:
     return KissICP, KISSConfig, voxel_down_sample
 
 
-@dataclass(frozen=True)
-class _Frame:
-    """What the checks keep of a cloud: its voxelised points, their normals and a kd-tree."""
-
-    points: FloatArray  # (M, 3) in the cloud's sensor frame
-    structure: npt.NDArray[np.bool_]
-    constraint: float
-    tree: Any
-
-
 class KissOdometry:
     """KISS-ICP odometry behind :class:`~solid_ros.core.odometry.track.OdometrySource`.
 
@@ -91,15 +85,23 @@ class KissOdometry:
 
     Attributes:
         name: 'kiss_icp'.
+        takes_point_times: True: :meth:`pose_for` takes per-point times (deskew).
+        config: the settings in use (max range and voxel derived from the first cloud when
+            they are 0).
         segment: the current odometry segment (0 until the first reset).
         resets: resets so far (segments started after the first).
-        reset_counts: clouds that could not be registered, by kind: 'points', 'degenerate',
-            'failed', 'jump', 'overlap' (a bad cloud while the new segment has no cloud yet
-            is counted but starts no further segment), and 'requested' (:meth:`reset`).
+        reset_counts: clouds that could not be registered, by kind: 'points', 'stamp',
+            'degenerate', 'failed', 'jump', 'overlap' (a bad cloud while the new segment has
+            no cloud yet is counted but starts no further segment), and 'requested'
+            (:meth:`reset`).
+        input_counts: clouds that lost points: 'nan' (rows with a non-finite coordinate).
+        recovered: clouds whose registration from KISS-ICP's guess failed the checks and that
+            registered from another guess instead, by guess ('time-scaled', 'standstill').
         registered: clouds registered.
     """
 
     name = 'kiss_icp'
+    takes_point_times = True  # pose_for deskews with per-point times
 
     def __init__(self, config: NodeConfig | None = None) -> None:
         self.config = config if config is not None else NodeConfig()
@@ -108,10 +110,15 @@ class KissOdometry:
         self.resets = 0
         self.registered = 0
         self.reset_counts: Counter[str] = Counter()
+        self.input_counts: Counter[str] = Counter()
         self._origin: FloatArray = np.eye(4)  # odom <- this segment's KISS-ICP frame
         self._pose: FloatArray = np.eye(4)  # last accepted pose, odom frame
         self._kiss: Any = None  # None: the segment has no cloud yet
-        self._prev: _Frame | None = None
+        self._prev: Frame | None = None
+        self._guard: OverlapGuard | None = None
+        self._stamp: int | None = None
+        self._stamps: tuple[int | None, int | None] = (None, None)  # segment's last two
+        self.recovered: Counter[str] = Counter()
         self._pending: str | None = None  # reset reason for the next sample
 
     def _new_kiss(self) -> Any:
@@ -122,6 +129,17 @@ class KissOdometry:
         kc.data.deskew = c.kiss_deskew
         kc.mapping.voxel_size = c.kiss_voxel_size
         return self._KissICP(kc)
+
+    @property
+    def max_step_m(self) -> float:
+        """Longest registration step not taken as a jump, metres."""
+        c = self.config
+        return c.kiss_max_step_m if c.kiss_max_step_m > 0 else c.kiss_max_range / 2.0
+
+    @property
+    def typical_overlap(self) -> float | None:
+        """The run's median overlap of consecutive clouds (None: not measured yet)."""
+        return None if self._guard is None else self._guard.typical
 
     def pose_for(self, stamp_ns: int, points: Points | None = None,
                  point_times: npt.ArrayLike | None = None) -> OdomSample | None:
@@ -139,21 +157,28 @@ class KissOdometry:
         """
         if points is None:
             return None
-        frame = _finite_xyz(points)
-        gated = _in_range(frame, self.config.kiss_min_range, self.config.kiss_max_range)
+        frame, keep = _finite_xyz(points)
+        if len(keep) and not keep.all():
+            self.input_counts['nan'] += 1
+        if self._guard is None:
+            self._settle(frame)
+        c = self.config
+        gated = _in_range(frame, c.kiss_min_range, c.kiss_max_range)
         if gated < MIN_POINTS:
-            self._reset('points', f'{gated} finite points within '
-                        f'({self.config.kiss_min_range:g}, {self.config.kiss_max_range:g}) m, '
-                        f'needs {MIN_POINTS}')
+            self._reset('points', f'{gated} finite points within ({c.kiss_min_range:g}, '
+                        f'{c.kiss_max_range:g}) m, needs {MIN_POINTS}')
             return self._sample(stamp_ns)
+        if self._stamp is not None and stamp_ns < self._stamp:
+            self._reset('stamp', f'cloud stamp {(self._stamp - stamp_ns) * 1e-9:.3f} s older '
+                        'than the last one')
+        self._stamp = int(stamp_ns)
         times = np.zeros(0) if point_times is None else np.ravel(
             np.asarray(point_times, dtype=np.float64))
-        if len(times) != len(frame):
-            times = np.zeros(0)  # a time per finite point or none
+        times = times[keep] if len(times) == len(keep) else np.zeros(0)
         check = self._prepare(frame)
-        if self._kiss is not None and check.constraint < self.config.kiss_min_constraint:
+        if self._kiss is not None and check.constraint < c.kiss_min_constraint:
             self._reset('degenerate', f'degenerate cloud: translation constraint '
-                        f'{check.constraint:.4f} < {self.config.kiss_min_constraint:g} '
+                        f'{check.constraint:.4f} < {c.kiss_min_constraint:g} '
                         '(a corridor or a single wall)')
         why = self._register(frame, times, check)
         if why is not None:
@@ -162,70 +187,83 @@ class KissOdometry:
                 self._register(frame, times, check)  # a good cloud: first of the new segment
         return self._sample(stamp_ns)
 
+    def _settle(self, frame: FloatArray) -> None:
+        """Derive the settings left to the data from the first cloud with finite points."""
+        if len(frame) == 0:
+            return
+        self.config = derive_settings(self.config, [frame])
+        self._guard = OverlapGuard(self.config.kiss_min_overlap,
+                                   2.0 * self.config.kiss_voxel_size)
+
     def _register(self, frame: FloatArray, times: FloatArray,
-                  check: _Frame) -> tuple[str, str] | None:
-        """Register one cloud; on success keep it, else return (kind, reason)."""
+                  check: Frame) -> tuple[str, str] | None:
+        """Register one cloud; on success keep it, else return (kind, reason).
+
+        It is aligned from KISS-ICP's guess; when that fails the checks, from the other
+        guesses (:func:`~solid_ros.core.odometry.kiss_step.guesses`) before giving up.
+        """
         fresh = self._kiss is None
         kiss = self._new_kiss() if fresh else self._kiss
-        before = np.array(kiss.last_pose, dtype=np.float64)
-        predicted = before @ np.asarray(kiss.last_delta, dtype=np.float64)
+        first: tuple[str, str] | None = None
         try:
-            kiss.register_frame(frame, times)
-            new = np.array(kiss.last_pose, dtype=np.float64)
+            source, map_points = prepared(kiss, frame, times)
+            for label, guess in guesses(kiss, None if fresh else self._ratio()):
+                step = align(kiss, source, map_points, guess)
+                if step.pose.shape != (4, 4) or not np.all(np.isfinite(step.pose)):
+                    return 'failed', 'KISS-ICP returned a non-finite pose'
+                why, overlap = (None, None) if fresh else self._check(kiss, step, check)
+                if why is None:
+                    commit(kiss, step)
+                    kept = label
+                    break
+                first = first or why
+            else:
+                return first
         except Exception as err:  # the binding may raise anything
             return 'failed', f'KISS-ICP failed: {" ".join(str(err).split())[:160]}'
-        if new.shape != (4, 4) or not np.all(np.isfinite(new)):
-            return 'failed', 'KISS-ICP returned a non-finite pose'
-        if not fresh:
-            step = np.linalg.inv(before) @ new
-            jump = max(float(np.linalg.norm(step[:3, 3])),
-                       float(np.linalg.norm((np.linalg.inv(predicted) @ new)[:3, 3])))
-            if jump > self.config.kiss_max_step_m:
-                return 'jump', (f'registration jumped {jump:.2f} m '
-                                f'(> kiss_max_step_m {self.config.kiss_max_step_m:g})')
-            overlap = self._overlap(check, step)
-            if overlap < self.config.kiss_min_overlap:
-                return 'overlap', (f'cloud does not overlap the previous one where KISS-ICP '
-                                   f'put it: {overlap:.2f} of its structure within '
-                                   f'{2 * self.config.kiss_voxel_size:g} m '
-                                   f'(< kiss_min_overlap {self.config.kiss_min_overlap:g})')
+        if first is not None:
+            self.recovered[kept] += 1
+        if overlap is not None and self._guard is not None:
+            self._guard.accept(overlap)
         self._kiss, self._prev = kiss, check
-        self._pose = self._origin @ new
+        self._pose = self._origin @ step.pose
+        self._stamps = (self._stamps[1], self._stamp)
         self.registered += 1
         return None
 
-    def _prepare(self, frame: FloatArray) -> _Frame:
+    def _ratio(self) -> float | None:
+        """Time since the segment's last cloud over the time between its two before."""
+        older, last = self._stamps
+        if older is None or last is None or self._stamp is None or last <= older:
+            return None
+        return (self._stamp - last) / (last - older)
+
+    def _check(self, kiss: Any, step: Aligned,
+               check: Frame) -> tuple[tuple[str, str] | None, float | None]:
+        """(kind, reason) when the aligned cloud jumps or does not overlap, and its overlap."""
+        if self._prev is None or self._guard is None:
+            return None, None
+        last = np.asarray(kiss.last_pose, dtype=np.float64)
+        move = np.linalg.inv(last) @ step.pose
+        jump = max(float(np.linalg.norm(move[:3, 3])),
+                   float(np.linalg.norm((np.linalg.inv(step.guess) @ step.pose)[:3, 3])))
+        if jump > self.max_step_m:
+            return ('jump', f'registration jumped {jump:.2f} m (> {self.max_step_m:g} m)'), None
+        overlap = self._guard.overlap(check, self._prev, move)
+        if self._guard.fails(overlap):
+            return ('overlap', f'cloud does not overlap the previous one where KISS-ICP put '
+                    f'it: {overlap:.2f} of its structure within {self._guard.reach:g} m, below '
+                    f"{self._guard.bar:.2f} ({self._guard.ratio:g} x the run's "
+                    f'{self._guard.typical:.2f})'), overlap
+        return None, overlap
+
+    def _prepare(self, frame: FloatArray) -> Frame:
         """Voxelise as KISS-ICP does for registration, then normals, structure, constraint."""
-        from scipy.spatial import cKDTree
-
+        c = self.config
         r = np.linalg.norm(frame, axis=1)
-        gated = frame[(r > self.config.kiss_min_range) & (r < self.config.kiss_max_range)]
-        pts = np.asarray(self._voxel_down_sample(gated, 1.5 * self.config.kiss_voxel_size),
-                         dtype=np.float64).reshape(-1, 3)
-        tree = cKDTree(pts)
-        k = min(_NEIGHBOURS, len(pts))
-        _, idx = tree.query(pts, k=k)
-        nb = pts[np.asarray(idx).reshape(len(pts), k)]
-        centred = nb - nb.mean(axis=1, keepdims=True)
-        w, v = np.linalg.eigh(np.einsum('nki,nkj->nij', centred, centred))
-        normals = v[:, :, 0]
-        planar = normals[w[:, 1] > _PLANAR * np.maximum(w[:, 0], 1e-12)]
-        # Horizontal only: without ground (a tilted or high sensor) z rests on KISS-ICP's
-        # motion prediction, but the structure still fixes the position (x, y).
-        xy = planar[:, :2]
-        info = xy.T @ xy / max(len(pts), 1)
-        return _Frame(pts, np.abs(normals[:, 2]) < _STRUCTURE_MAX_NZ,
-                      float(np.linalg.eigvalsh(info)[0]), tree)
-
-    def _overlap(self, check: _Frame, step: FloatArray) -> float:
-        """Fraction of the cloud's structure points within two voxels of the previous cloud,
-        mapped by KISS-ICP's step (``p_prev = step p``); 1.0 when too little structure."""
-        prev = self._prev
-        struct = check.points[check.structure]
-        if prev is None or len(struct) < _MIN_STRUCTURE:
-            return 1.0
-        dist, _ = prev.tree.query(struct @ step[:3, :3].T + step[:3, 3])
-        return float(np.mean(np.asarray(dist) < 2.0 * self.config.kiss_voxel_size))
+        gated = frame[(r > c.kiss_min_range) & (r < c.kiss_max_range)]
+        return prepare(np.asarray(self._voxel_down_sample(gated, 1.5 * c.kiss_voxel_size),
+                                  dtype=np.float64))
 
     def reset(self, reason: str = 'requested') -> None:
         """Start a new segment on the next cloud (a caller's reset: a time jump, a relocalised
@@ -239,7 +277,7 @@ class KissOdometry:
         if self._kiss is None:
             note = f'odometry segment {self.segment} still has no cloud: {reason}'
         else:
-            self._kiss, self._prev = None, None
+            self._kiss, self._prev, self._stamps = None, None, (None, None)
             self._origin = self._pose.copy()
             self.segment += 1
             self.resets += 1
@@ -251,13 +289,15 @@ class KissOdometry:
         return OdomSample(int(stamp_ns), self._pose.copy(), None, self.segment, reason)
 
 
-def _finite_xyz(points: Points) -> FloatArray:
-    """(N, 3) float64 C-contiguous x, y, z of the finite rows (none for a malformed array)."""
+def _finite_xyz(points: Points) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """(N, 3) float64 C-contiguous x, y, z of the finite rows, and which rows those are (none
+    for a malformed array)."""
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[1] < 3 or not np.issubdtype(p.dtype, np.number):
-        return np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros(0, dtype=bool)
     xyz = p[:, :3].astype(np.float64)
-    return np.ascontiguousarray(xyz[np.all(np.isfinite(xyz), axis=1)])
+    keep = np.all(np.isfinite(xyz), axis=1)
+    return np.ascontiguousarray(xyz[keep]), keep
 
 
 def _in_range(points: FloatArray, low: float, high: float) -> int:

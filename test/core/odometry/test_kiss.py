@@ -74,8 +74,14 @@ def test_follows_a_simulated_drive_with_kiss_icps_own_poses() -> None:
     # KISS-ICP's own poses: the adapter adds nothing to a cloud it registers. (KISS-ICP
     # itself differs from run to run in the last bits, about 1e-15 per cloud.)
     KissICP, KISSConfig, _ = load_kiss_icp()
+    # Its settings came from the first cloud, as KISS-ICP's pipeline takes its voxel from the
+    # range: the 99th percentile of the ranges, and a hundredth of it.
+    ranges = np.linalg.norm(_cloud(0), axis=1)
+    assert odo.config.kiss_max_range == np.ceil(np.percentile(ranges, 99))
+    assert odo.config.kiss_voxel_size == odo.config.kiss_max_range / 100.0
     kc = KISSConfig()
-    kc.data.max_range, kc.data.deskew, kc.mapping.voxel_size = 50.0, False, 0.5
+    kc.data.max_range, kc.data.deskew = odo.config.kiss_max_range, False
+    kc.mapping.voxel_size = odo.config.kiss_voxel_size
     kiss = KissICP(kc)
     for i, sample in enumerate(samples):
         kiss.register_frame(_cloud(i), np.zeros(0))
@@ -114,20 +120,55 @@ def test_clouds_it_cannot_register_reset_it_into_new_segments() -> None:
     assert seen[-1][0] == 2 and 'overlap' in str(seen[-1][1]) and odo.reset_counts['overlap']
     feed(_cloud(58))
     assert seen[-1] == (2, None)
+    # The same place turned by 90 degrees (a jump KISS-ICP cannot follow).
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    feed(_cloud(59) @ turn.T)
+    assert seen[-1][0] == 3 and 'overlap' in str(seen[-1][1]), seen[-1]
+    feed(_cloud(60) @ turn.T)
+    assert seen[-1] == (3, None)
     # A corridor: its motion along the walls is unknown.
     feed(_corridor(0))
-    assert seen[-1][0] == 3 and 'degenerate' in str(seen[-1][1])
-    assert odo.resets == 3 and odo.segment == 3
-    assert sum(odo.reset_counts.values()) == 5
-    odo.reset('clock jumped back')  # the caller's reset
-    feed(_cloud(59))
-    assert seen[-1][0] == 4 and 'clock jumped back' in str(seen[-1][1])
+    assert seen[-1][0] == 4 and 'degenerate' in str(seen[-1][1])
+    assert odo.resets == 4 and odo.segment == 4
+    # NaN rows were dropped from two clouds: the all-NaN one and the one with 50 of them.
+    assert sum(odo.reset_counts.values()) == 6 and odo.input_counts['nan'] == 2
+    odo.reset('relocalised')  # the caller's reset
+    feed(_cloud(61))
+    assert seen[-1][0] == 5 and 'relocalised' in str(seen[-1][1])
+
+
+@needs_kiss
+def test_a_gap_in_the_clouds_is_registered_from_the_time_scaled_guess() -> None:
+    # 1 m steps, then 6 m (five clouds missing, as keyframes of a fast car): KISS-ICP's
+    # constant velocity guesses 1 m and its alignment does not overlap; six times the last
+    # motion does, and no reset is needed.
+    odo = KissOdometry()
+    indices = [0, 1, 2, 3, 9, 10]
+    samples = [odo.pose_for(_drive().stamp_ns(i), _cloud(i)) for i in indices]
+    assert all(s is not None and s.reason is None for s in samples), samples
+    assert odo.resets == 0 and odo.recovered == {'time-scaled': 1}
+    truth = np.linalg.inv(_drive().pose(0)) @ _drive().pose(10)
+    assert samples[-1] is not None
+    assert np.linalg.norm(samples[-1].pose[:3, 3] - truth[:3, 3]) < 0.1
+
+
+@needs_kiss
+def test_a_stamp_that_jumps_back_starts_a_new_segment() -> None:
+    odo = KissOdometry()
+    for i in range(4):
+        assert odo.pose_for(_drive().stamp_ns(i), _cloud(i)).reason is None  # type: ignore
+    back = odo.pose_for(_drive().stamp_ns(1), _cloud(4))
+    assert back is not None and back.segment == 1 and 'older than the last' in str(back.reason)
+    assert odo.reset_counts == {'stamp': 1}
+    after = odo.pose_for(_drive().stamp_ns(2), _cloud(5))
+    assert after is not None and after.segment == 1 and after.reason is None
 
 
 @needs_kiss
 def test_a_jump_and_a_failure_reset_it() -> None:
     # 1 m steps against a 0.5 m limit: every step after the first of a segment is a jump.
     odo = KissOdometry(NodeConfig(kiss_max_step_m=0.5))
+    assert KissOdometry().max_step_m == 0.0  # half the max range, once there is one
     first = odo.pose_for(1, _cloud(0))
     jumped = odo.pose_for(2, _cloud(1))
     assert first is not None and jumped is not None
@@ -135,13 +176,15 @@ def test_a_jump_and_a_failure_reset_it() -> None:
     np.testing.assert_array_equal(jumped.pose, first.pose)  # no pose that jumps unlogged
 
     class Broken:
+        """A KISS-ICP whose every step raises, as the binding may (out of memory)."""
+
         last_pose = np.eye(4)
         last_delta = np.eye(4)
 
         def __init__(self, config: Any) -> None:
-            pass
+            self.preprocessor = self
 
-        def register_frame(self, frame: Any, times: Any) -> None:
+        def preprocess(self, frame: Any, times: Any, delta: Any) -> None:
             raise RuntimeError('std::bad_alloc')
 
     odo = KissOdometry()
@@ -172,7 +215,10 @@ def test_kiss_icp_is_imported_only_when_chosen() -> None:
 
 
 def test_settings_are_checked() -> None:
-    assert NodeConfig().odometry_source == 'topic' and NodeConfig().kiss_deskew is False
+    default = NodeConfig()
+    assert default.odometry_source == 'topic' and default.kiss_deskew is True
+    # Range, voxel and jump come from the data unless set.
+    assert default.kiss_max_range == default.kiss_voxel_size == default.kiss_max_step_m == 0.0
     with pytest.raises(ConfigError, match='kiss_max_range'):
         NodeConfig(kiss_min_range=10.0, kiss_max_range=5.0)
     with pytest.raises(ConfigError, match='odometry_source'):
