@@ -30,7 +30,9 @@ the earlier keyframes of this session near the query in the corrected estimate (
 one-sided, the keyframes whose view centre (their cloud's centroid) lies near the query's: a
 narrow field of view sees the place ahead, so a street driven the other way is seen from
 keyframes tens of metres off. Every candidate
-the graph knows is registered from the graph's relative pose first. Those near keyframes (the
+the graph knows is registered from the graph's relative pose first, then from the heading
+hypotheses that turn no farther from it than the graph's heading tolerance (a loop beyond it is
+refused: :func:`~solid_ros.core.candidates.hits.hypotheses_kept`). Those near keyframes (the
 graph's, and the descriptor's among them) are verified first, then those by view; the
 descriptor's other candidates only when they leave fewer than ``max_candidates`` places
 verified. Without a hint nothing changes.
@@ -76,7 +78,12 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.candidates.covisibility import StructureIndex, coarse_structure
-from solid_ros.core.candidates.hits import shared_hits, view_centre, with_graph_hits
+from solid_ros.core.candidates.hits import (
+    hypotheses_kept,
+    shared_hits,
+    view_centre,
+    with_graph_hits,
+)
 from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Hit, Proposal
 from solid_ros.core.config import SolidConfig
@@ -711,8 +718,9 @@ class LoopDetector:
             yaws[i] = hyps[0][0] if hyps else 0.0
             if i in results:  # a peer's cloud that did not come
                 continue
-            # The graph's guess first; the heading hypotheses when drift put it too far off.
-            starts = [y for y, _ in hyps]
+            # The graph's guess first; the heading hypotheses when drift put it too far off
+            # (those a loop could keep: within the graph's heading tolerance of its guess).
+            starts = hypotheses_kept(hit, [y for y, _ in hyps])
             c = verifier.coarse(query, (hit.match.session, hit.match.seq), clouds[i], starts,
                                 () if hit.guess is None else (hit.guess,))
             if c.rejection is not None:

@@ -31,7 +31,7 @@ from solid_ros.core.descriptor.solid import voxel_downsample
 from solid_ros.core.errors import SolidError
 from solid_ros.core.geometry import rot_z
 
-__all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'Query',
+__all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'Query', 'RangeImage',
            'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine', 'coarsened',
            'for_peers', 'load_small_gicp']
 
@@ -48,8 +48,9 @@ _GOOD_COARSE = 0.5  # coarse overlap that ends the search over heading hypothese
 # defaults, 0.1 deg / 1 mm, kept 80 % of coarse runs going to the iteration cap).
 _COARSE_ROTATION_EPS = math.radians(0.5)
 _COARSE_TRANSLATION_EPS = 0.01
-# A fine run that hit the iteration limit is resumed this long; a pose that moves less than
-# this (fine voxels, degrees) meanwhile is stationary: converged (see align_fine).
+# A fine run not converged after _FIRST_ITERATIONS is resumed this long; a pose that moves less
+# than this (fine voxels, degrees) meanwhile is stationary: converged (see align_fine).
+_FIRST_ITERATIONS = 15
 _RESUME_ITERATIONS = 5
 _STATIONARY_VOXELS = 0.1
 _STATIONARY_DEG = 0.5
@@ -158,9 +159,9 @@ class Query:
         return int(self.structure.sum())
 
     @cached_property
-    def ranges(self) -> FloatArray:
+    def ranges(self) -> RangeImage:
         """Range image of the cloud (computed on first use: most candidates never need it)."""
-        return range_image(self.points)
+        return RangeImage(self.points)
 
     @property
     def plane_thickness(self) -> FloatArray:
@@ -268,13 +269,13 @@ class Source:
             sg.estimate_covariances(self.coarse, num_neighbors=_NEIGHBOURS)
         self._fine: Any = None
         self._tree: Any = None
-        self._ranges: FloatArray | None = None
+        self._ranges: RangeImage | None = None
 
     @property
-    def ranges(self) -> FloatArray:
+    def ranges(self) -> RangeImage:
         """Range image of the cloud (computed on first use)."""
         if self._ranges is None:
-            self._ranges = range_image(self.points)
+            self._ranges = RangeImage(self.points)
         return self._ranges
 
     def fine(self) -> tuple[Any, Any]:
@@ -303,23 +304,43 @@ def _bins(points: FloatArray) -> tuple[npt.NDArray[np.intp], FloatArray]:
     return ia * _N_EL + ie, r
 
 
+class RangeImage:
+    """A cloud's range image, read where needed: ``image[bins]`` is :func:`range_image` at
+    the flat bins ``bins`` (see :func:`_bins`), each the least of 9 cells of the nearest-range
+    grid. The conflict test reads it at the other cloud's points, a few thousand of its
+    64,800 bins: the whole neighbourhood image (half a megabyte per cloud, rolled and copied
+    six times) cost more than all the reads.
+
+    Args:
+        points: (N, 3) points in the sensor's frame.
+    """
+
+    def __init__(self, points: FloatArray) -> None:
+        self._nearest = np.full(_N_AZ * _N_EL, np.inf)  # nearest range per bin, inf: none
+        if len(points):
+            b, r = _bins(points)
+            np.minimum.at(self._nearest, b, r)
+
+    def __getitem__(self, bins: npt.NDArray[np.intp]) -> FloatArray:
+        """The least nearest range of each bin and its 8 neighbours: azimuth wraps around;
+        beyond the first and last elevation row there is none (the row itself stands in for
+        it, which changes no minimum)."""
+        ia, ie = np.divmod(np.asarray(bins, dtype=np.intp), _N_EL)
+        out: FloatArray = np.full(len(ia), np.inf)
+        for da in (-1, 0, 1):
+            row = (ia + da) % _N_AZ * _N_EL
+            for de in (-1, 0, 1):
+                np.minimum(out, self._nearest[row + np.clip(ie + de, 0, _N_EL - 1)], out=out)
+        return out
+
+
 def range_image(points: FloatArray) -> FloatArray:
     """Nearest range per 1-degree direction bin and its 8 neighbours (inf where the cloud has
-    no point): the neighbourhood absorbs edge pixels and small misalignments."""
-    img = np.full(_N_AZ * _N_EL, np.inf)
-    if len(points):
-        b, r = _bins(points)
-        np.minimum.at(img, b, r)
-    grid = img.reshape(_N_AZ, _N_EL)
-    rows = np.minimum(grid, np.minimum(np.roll(grid, 1, axis=0), np.roll(grid, -1, axis=0)))
-    out = rows.copy()
-    out[:, 1:] = np.minimum(out[:, 1:], rows[:, :-1])
-    out[:, :-1] = np.minimum(out[:, :-1], rows[:, 1:])
-    flat: FloatArray = out.reshape(-1)
-    return flat
+    no point), every bin: the neighbourhood absorbs edge pixels and small misalignments."""
+    return RangeImage(points)[np.arange(_N_AZ * _N_EL)]
 
 
-def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float,
+def free_space_conflict(points: FloatArray, ranges: FloatArray | RangeImage, margin: float,
                         structure: int | None = None,
                         explained: npt.NDArray[np.bool_] | None = None,
                         cell: float = 0.0, together: int = 1) -> float:
@@ -360,7 +381,7 @@ def free_space_conflict(points: FloatArray, ranges: FloatArray, margin: float,
     return _fraction(conflict, known, structure)
 
 
-def _conflict_masks(points: FloatArray, ranges: FloatArray, margin: float,
+def _conflict_masks(points: FloatArray, ranges: FloatArray | RangeImage, margin: float,
                     explained: npt.NDArray[np.bool_]
                     ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
     """Which points conflict and which lie in a direction the viewing sensor saw (see
@@ -476,29 +497,40 @@ def align_fine(query: Query, source: Source, T_qm: FloatArray,
                settings: RegistrationSettings) -> Alignment:
     """Refine ``T_qm`` with voxelised GICP against the query's voxel map (all points).
 
-    A run that ends at the iteration limit without small_gicp's convergence flag is continued
-    for ``_RESUME_ITERATIONS``; when that moves the pose by less than ``_STATIONARY_VOXELS``
-    fine voxels and ``_STATIONARY_DEG`` degrees, the pose is stationary and counts as
-    converged. Small near-field clouds end that way: the optimiser keeps refusing steps at
-    the optimum (its damping grows, the pose does not move) or alternates between two
-    correspondence sets a centimetre apart, so its step-size criterion is never met.
+    A run that ends without small_gicp's convergence flag after ``_FIRST_ITERATIONS`` is
+    continued for ``_RESUME_ITERATIONS``; when that moves the pose by less than
+    ``_STATIONARY_VOXELS`` fine voxels and ``_STATIONARY_DEG`` degrees, the pose is stationary
+    and counts as converged. Small near-field clouds end that way: the optimiser keeps refusing
+    steps at the optimum (its damping grows, the pose does not move) or alternates between two
+    correspondence sets a centimetre apart, so its step-size criterion is never met. A pose
+    still moving goes on from there for the rest of ``max_iterations`` and is checked the same
+    way at its end. (Checked only at the iteration limit, the stationary runs, a sixth of
+    hku1's, ran to it: a third of the fine stage's registration time.)
     """
     sg = load_small_gicp()
     fine, _ = source.fine()
-    res = sg.align(query.vmap, fine, np.asarray(T_qm, dtype=np.float64),
-                   max_correspondence_distance=settings.neighbour_distance,
-                   max_iterations=settings.max_iterations)
-    T = np.asarray(res.T_target_source, dtype=np.float64)
-    converged, iterations = bool(res.converged), int(res.iterations)
-    if not converged:
-        more = sg.align(query.vmap, fine, T,
-                        max_correspondence_distance=settings.neighbour_distance,
-                        max_iterations=_RESUME_ITERATIONS)
-        step = np.linalg.solve(T, np.asarray(more.T_target_source, dtype=np.float64))
+
+    def run(T: FloatArray, iterations: int) -> tuple[FloatArray, bool, int]:
+        res = sg.align(query.vmap, fine, T, max_iterations=iterations,
+                       max_correspondence_distance=settings.neighbour_distance)
+        return (np.asarray(res.T_target_source, dtype=np.float64), bool(res.converged),
+                int(res.iterations))
+
+    first = min(settings.max_iterations, _FIRST_ITERATIONS)
+    T, converged, iterations = run(np.asarray(T_qm, dtype=np.float64), first)
+    for rest in (settings.max_iterations - first - _RESUME_ITERATIONS, 0):
+        if converged:
+            break
+        moved, _, more = run(T, _RESUME_ITERATIONS)
+        iterations += more
+        step = np.linalg.solve(T, moved)
         cos = min(max((float(np.trace(step[:3, :3])) - 1.0) / 2.0, -1.0), 1.0)
         converged = (float(np.linalg.norm(step[:3, 3])) <= _STATIONARY_VOXELS * settings.voxel
                      and math.degrees(math.acos(cos)) <= _STATIONARY_DEG)
-        iterations += int(more.iterations)
+        if converged or rest <= 0:
+            break
+        T, converged, more = run(moved, rest)
+        iterations += more
     return Alignment(T, converged, iterations)
 
 

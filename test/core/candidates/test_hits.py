@@ -13,6 +13,7 @@ from solid_ros.core.candidates.hits import (
     graph_stray,
     graph_turn,
     hit_knows_place,
+    hypotheses_kept,
     view_centre,
 )
 from solid_ros.core.candidates.proposal import Hit
@@ -45,6 +46,19 @@ def turned_from_guess(hit: Hit, T_mq: np.ndarray) -> bool:
     """The graph_heading rule's refusal."""
     turn, tol = graph_turn(hit, T_mq)
     return not math.isnan(turn) and turn > tol
+
+
+def test_only_hypotheses_within_the_heading_tolerance_of_the_guess_are_tried() -> None:
+    """A start turned farther from the graph's guess could only verify a loop the
+    graph_heading rule refuses (or land where the guess, tried first, started)."""
+    guess = np.eye(4)
+    guess[:3, :3] = rot_z(math.radians(30.0))
+    hit = Hit(Match(0, 0, 0, 0, 0.5), math.nan, np.zeros(60, np.float32), 'descriptor', guess,
+              True, 10.0)
+    yaws = [math.radians(d) for d in (35.0, 210.0, 21.0, -150.0)]
+    assert hypotheses_kept(hit, yaws) == [yaws[0], yaws[2]]
+    # Without a guess nothing is checked: every hypothesis is a start.
+    assert hypotheses_kept(replace(hit, guess=None), yaws) == yaws
 
 
 def strayed_from_guess(hit: Hit, centre: np.ndarray, cfg: SolidConfig, T_mq: np.ndarray,
