@@ -15,13 +15,14 @@ free-space conflict, the constraint without the strongest object, the consistenc
 the loop covariance. A pose that passes is then restarted from two of the configuration's
 voxels either way along its least constrained horizontal direction (four of the tight grid's):
 a second minimum along a street seen head-on holds its one-voxel basin as well as the right
-pose does. A restart that ends beyond ``verify_max_drift`` at a pose with no more conflict and
-more structure overlap, or at least ``verify_min_overlap`` of it with an RMS below
-``_FITS_BETTER`` of the loop's, found a better minimum, and the fine rules judge that pose
-instead (the right pose 0.7-1.2 m along such a street has a basin narrower than a voxel, so
-this mostly refuses an ambiguous place). Last, the context rules judge the pose the fine stage
-settled on against this session's odometry and pose graph (a :class:`Place` from the
-detector). One :class:`~solid_ros.core.results.Evidence` record holds every measure taken.
+pose does. A restart that ends beyond ``verify_max_drift`` at a pose with no more conflict,
+neither structure overlap lower, and more of the smaller or at least ``verify_min_overlap`` of
+it with an RMS below ``_FITS_BETTER`` of the loop's, found a better minimum, and the fine rules
+judge that pose instead (the right pose 0.7-1.2 m along such a street has a basin narrower
+than a voxel, so this mostly refuses an ambiguous place). Last, the context rules judge the
+pose the fine stage settled on against this session's odometry and pose graph (a
+:class:`Place` from the detector). One :class:`~solid_ros.core.results.Evidence` record holds
+every measure taken.
 
 Consistency restarts (``unstable``): the fine stage restarts from the pose moved one fine
 voxel along the least constrained horizontal direction and turned, both ways, by 2 degrees or,
@@ -512,10 +513,8 @@ class Verifier:
                         sup: Support) -> FloatArray | None:
         """A better pose the fine stage finds from ``T_qm`` moved ``_FAR_VOXELS`` of the
         configuration's voxels either way along the least constrained horizontal direction, if
-        any: one beyond ``verify_max_drift`` with at most the conflict of ``T_qm`` and more
-        structure overlap, or ``verify_min_overlap`` of it and a clearly better fit (RMS below
-        ``_FITS_BETTER`` of ``T_qm``'s); the one with more overlap where both restarts find
-        one."""
+        any: one beyond ``verify_max_drift`` that fits better (:func:`_better_minimum`); the
+        one with more overlap where both restarts find one."""
         weak = _weak_direction(sup.information)
         best: tuple[float, FloatArray] | None = None
         for sign in (1.0, -1.0):
@@ -527,10 +526,7 @@ class Verifier:
                     and float(np.linalg.norm(diff[:3, 3])) > self.config.verify_max_drift):
                 continue
             there = Support(query, src, again.T_qm, query.settings)
-            better = (there.overlap > sup.overlap
-                      or (there.rmse < _FITS_BETTER * sup.rmse
-                          and there.overlap >= self.config.verify_min_overlap))
-            if (better and there.conflict <= sup.conflict
+            if (_better_minimum(there, sup, self.config.verify_min_overlap)
                     and (best is None or there.overlap > best[0])):
                 best = (there.overlap, again.T_qm)
         return None if best is None else best[1]
@@ -558,6 +554,22 @@ class Verifier:
             worst_m = max(worst_m, float(np.linalg.norm(diff[:3, 3])))
             worst_deg = max(worst_deg, _angle_deg(diff[:3, :3]))
         return worst_m, worst_deg, math.degrees(turn)
+
+
+def _better_minimum(there: Support, here: Support, min_overlap: float) -> bool:
+    """Whether a far restart's pose (``there``) fits better than the loop's (``here``): no
+    more conflict, neither structure overlap lower, and more overlap or ``min_overlap`` of it
+    with a clearly better fit (RMS below ``_FITS_BETTER`` of the loop's).
+
+    Both directions are compared, not only the smaller: on a street lined with porous foliage
+    the smaller (the query's) rose 0.48 -> 0.52 at a pose 1.5 m along the street while the
+    candidate's own fell 0.88 -> 0.67, and that pose replaced the right one.
+    """
+    if there.overlap_match < here.overlap_match or there.overlap_query < here.overlap_query:
+        return False
+    fits = there.overlap > here.overlap or (there.rmse < _FITS_BETTER * here.rmse
+                                            and there.overlap >= min_overlap)
+    return fits and there.conflict <= here.conflict  # the conflict last: it costs most
 
 
 def _angle_deg(R: FloatArray) -> float:
