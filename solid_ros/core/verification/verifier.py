@@ -16,8 +16,8 @@ the loop covariance. A pose that passes is then restarted from two of the config
 voxels either way along its least constrained horizontal direction (four of the tight grid's):
 a second minimum along a street seen head-on holds its one-voxel basin as well as the right
 pose does. A restart that ends beyond ``verify_max_drift`` at a pose with no more conflict,
-neither structure overlap lower, and more of the smaller or at least ``verify_min_overlap`` of
-it with an RMS below ``_FITS_BETTER`` of the loop's, found a better minimum, and the fine rules
+and more structure overlap with neither direction's lower or at least ``verify_min_overlap``
+of it with an RMS below ``_FITS_BETTER`` of the loop's, found a better minimum, and the fine rules
 judge that pose instead (the right pose 0.7-1.2 m along such a street has a basin narrower
 than a voxel, so this mostly refuses an ambiguous place). Last, the context rules judge the
 pose the fine stage settled on against this session's odometry and pose graph (a
@@ -558,17 +558,18 @@ class Verifier:
 
 def _better_minimum(there: Support, here: Support, min_overlap: float) -> bool:
     """Whether a far restart's pose (``there``) fits better than the loop's (``here``): no
-    more conflict, neither structure overlap lower, and more overlap or ``min_overlap`` of it
+    more conflict, and more overlap with neither direction's lower, or ``min_overlap`` of it
     with a clearly better fit (RMS below ``_FITS_BETTER`` of the loop's).
 
     Both directions are compared, not only the smaller: on a street lined with porous foliage
     the smaller (the query's) rose 0.48 -> 0.52 at a pose 1.5 m along the street while the
-    candidate's own fell 0.88 -> 0.67, and that pose replaced the right one.
+    candidate's own fell 0.88 -> 0.67, and that pose replaced the right one. The clearly
+    better fit stands alone: it finds out slides along a room's structure whose overlap
+    falls one way (test_verifier's room slides failed when it had to hold both).
     """
-    if there.overlap_match < here.overlap_match or there.overlap_query < here.overlap_query:
-        return False
-    fits = there.overlap > here.overlap or (there.rmse < _FITS_BETTER * here.rmse
-                                            and there.overlap >= min_overlap)
+    more = (there.overlap > here.overlap and there.overlap_match >= here.overlap_match
+            and there.overlap_query >= here.overlap_query)
+    fits = more or (there.rmse < _FITS_BETTER * here.rmse and there.overlap >= min_overlap)
     return fits and there.conflict <= here.conflict  # the conflict last: it costs most
 
 
