@@ -564,8 +564,8 @@ def _better_minimum(there: Support, here: Support, min_overlap: float) -> bool:
     Both directions are compared, not only the smaller: on a street lined with porous foliage
     the smaller (the query's) rose 0.48 -> 0.52 at a pose 1.5 m along the street while the
     candidate's own fell 0.88 -> 0.67, and that pose replaced the right one. The clearly
-    better fit stands alone: it finds out slides along a room's structure whose overlap
-    falls one way (test_verifier's room slides failed when it had to hold both).
+    better fit stands alone: held to both directions too, it no longer found out the room
+    slides and the street's second minimum of test_verifier.
     """
     more = (there.overlap > here.overlap and there.overlap_match >= here.overlap_match
             and there.overlap_query >= here.overlap_query)
