@@ -14,8 +14,8 @@ from solid_ros.tools import demo
 
 
 @pytest.mark.slow
-def test_demo_runs_end_to_end_and_reuses_its_cache(tmp_path: Path,
-                                                   capsys: pytest.CaptureFixture[str]) -> None:
+def test_demo_runs_end_to_end(tmp_path: Path,
+                              capsys: pytest.CaptureFixture[str]) -> None:
     cache, out = tmp_path / 'cache', tmp_path / 'out'
     args = ['--cache-dir', str(cache), '--out', str(out), '-q']
     assert demo.main(args) == 0
@@ -36,15 +36,9 @@ def test_demo_runs_end_to_end_and_reuses_its_cache(tmp_path: Path,
     traj = report['trajectory']
     assert traj['corrected']['ate_m'] < 0.5 * traj['odometry']['ate_m']
     assert (out / 'trajectory.tum').is_file()
-    bags = list(cache.rglob('metadata.yaml'))
-    assert len(bags) == 1
-    mtime = bags[0].stat().st_mtime_ns
-    # Second run: the cached bag, clipped to 90 degrees.
-    assert demo.main([*args, '--fov', '90']) == 0
-    assert bags[0].stat().st_mtime_ns == mtime
-    recall, yaw_error = _same_direction(capsys.readouterr().out)
-    assert recall >= 0.8 and yaw_error < 1.0
-    assert json.loads((out / 'report.json').read_text())['loops']['precision'] == 1.0
+    # One bag in the cache (that a second run reuses it is test_demo_cache's; a second full
+    # replay here cost CI 40 s).
+    assert len(list(cache.rglob('metadata.yaml'))) == 1
 
 
 def _same_direction(text: str) -> tuple[float, float]:
