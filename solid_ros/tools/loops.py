@@ -67,6 +67,9 @@ class LoopRecord:
         rot_err_deg: rotation error against the reference (NaN: unknown).
         gt_distance_m: reference distance between the two keyframes (NaN: unknown).
         source: what proposed it (``descriptor`` or ``graph``).
+        coarse_overlap: the coarse stage's overlap (NaN: not registered). Zero: the
+            registration found nothing in common, so its pose is its unmoved start (the
+            graph's guess), not a measurement.
     """
 
     query: int
@@ -81,10 +84,17 @@ class LoopRecord:
     rot_err_deg: float
     gt_distance_m: float
     source: str = 'descriptor'
+    coarse_overlap: float = math.nan
 
     def correct(self, max_error_m: float, max_error_deg: float) -> bool:
         """Whether its pose is within the limits of the reference pose."""
         return bool(self.trans_err_m < max_error_m and self.rot_err_deg < max_error_deg)
+
+    @property
+    def measured(self) -> bool:
+        """Whether its pose came from a registration that found common structure (a pair
+        that shares no view keeps the start it was given: no measured pose)."""
+        return not self.coarse_overlap == 0.0
 
 
 def pose_error(T: npt.ArrayLike, T_ref: npt.ArrayLike) -> tuple[float, float]:

@@ -157,7 +157,7 @@ def _records(cfg: SolidConfig, results: list[ScanResult], published: list[LoopCa
                 gd = float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
             out.append(LoopRecord(c.query_index, c.match_index, c.match_session,
                                   id(c) in shown, c.verified, c.reason, c.overlap, c.distance,
-                                  te, re_, gd, c.source))
+                                  te, re_, gd, c.source, c.evidence.coarse_overlap))
     return out
 
 

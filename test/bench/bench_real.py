@@ -13,7 +13,11 @@ every candidate against the reference poses and prints:
   right loop (:func:`solid_ros.tools.loops.revisits`);
 - ``right refused``: candidates whose (rejected) pose lies within 1 m / 3 deg of the
   reference, by the reason that refused them, and how many right poses there were: a test
-  that refuses many right poses is too strict for this sensor and scene;
+  that refuses many right poses is too strict for this sensor and scene. Only measured poses
+  count (:attr:`~solid_ros.tools.loops.LoopRecord.measured`): a pair whose views share no
+  structure (a narrow sensor standing in the same spot, looking 100-135 degrees away, on
+  quickshack) keeps the graph's guess as its pose, which with the bag's odometry is the
+  reference itself; those are printed apart as ``no common view``;
 - ``ATE``: odometry and corrected keyframe ATE; ``verify``: median and p95 ms per keyframe;
   ``scans/s``: the whole replay, start-up included.
 
@@ -64,7 +68,8 @@ def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any],
                out_dir=None if out is None else out / name, plots=False)
     wall = time.perf_counter() - t0
     loops, traj = r.report['loops'], r.report['trajectory']
-    right = [x for x in r.scores.records if x.correct(MAX_M, MAX_DEG)]
+    right = [x for x in r.scores.records if x.correct(MAX_M, MAX_DEG) and x.measured]
+    unseen = sum(1 for x in r.scores.records if not x.measured)
     refused = Counter(x.reason for x in right if not x.published)
     verify = np.array([res.times.verify for res in r.log.results if res.keyframe])
     verify = verify[np.isfinite(verify)]
@@ -74,6 +79,7 @@ def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any],
         'published': loops['published'], 'false': loops['false'],
         'precision': loops.get('precision'), 'revisits': loops['revisits'],
         'right_poses': len(right), 'right_refused': dict(refused.most_common()),
+        'no_common_view': unseen,
         'ate_odometry_m': traj['odometry']['ate_m'],
         'ate_corrected_m': traj['corrected']['ate_m'],
         'verify_p50_ms': float(np.median(verify)) if len(verify) else math.nan,
@@ -98,7 +104,7 @@ def lines(name: str, s: dict[str, Any]) -> list[str]:
         f'{"-" if prec is None else f"{prec:.3f}"}',
         f'  revisit recall {recall}',
         f'  right refused  {sum(s["right_refused"].values())} of {s["right_poses"]} right '
-        f'poses: {refused}',
+        f'poses: {refused}; no common view {s.get("no_common_view", 0)}',
         f'  ATE            odometry {_m(s["ate_odometry_m"])}, corrected '
         f'{_m(s["ate_corrected_m"])}',
         f'  calibration    {_calibration(s)}',

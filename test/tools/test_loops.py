@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -143,3 +144,13 @@ def test_revisit_recall_counts_revisiting_keyframes_with_a_correct_loop() -> Non
     s = score_loops(records, rev)
     assert s['by_source'] == {'descriptor': {'published': 4, 'correct': 3},
                               'graph': {'published': 1, 'correct': 1}}
+
+
+def test_a_pose_nothing_was_registered_on_is_not_measured() -> None:
+    # Two views that share nothing keep the graph's guess: right with exact odometry, yet no
+    # registration measured it (quickshack: 57 such pairs counted as right poses refused).
+    unmoved = LoopRecord(35, 4, 0, False, False, 'coarse_overlap', math.nan, 0.1, 0.0, 0.0,
+                         0.3, coarse_overlap=0.0)
+    low = replace(unmoved, coarse_overlap=0.2)
+    assert unmoved.correct(1.0, 3.0) and not unmoved.measured
+    assert low.measured and _rec(1, 0, ov=0.6).measured  # NaN: no coarse stage recorded
