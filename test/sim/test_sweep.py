@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from solid_ros.core.config import NodeConfig
 from solid_ros.sim import DEMO_SENSORS, Drive, DriveConfig
 from solid_ros.sim.lidar import cast_scan
-from solid_ros.sim.sweep import moving_sweep
+from solid_ros.sim.sweep import moving_sweep, pose_at, ramp
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -50,6 +50,22 @@ def test_a_sweep_has_times_over_one_turn_and_ends_at_the_scan_pose() -> None:
     np.testing.assert_allclose(times, (azimuth + np.pi) / (2 * np.pi))
     with pytest.raises(ValueError):
         moving_sweep(_drive(), 0)
+    with pytest.raises(ValueError):
+        moving_sweep(_drive(), 3.0, start=4.0)
+
+
+def test_places_between_scans_and_a_drive_from_standing() -> None:
+    drive = _drive()
+    np.testing.assert_allclose(pose_at(drive, 20.0), drive.pose(20), atol=1e-12)
+    half = pose_at(drive, 20.5)
+    np.testing.assert_allclose(half[:3, 3], (drive.pose(20)[:3, 3] + drive.pose(21)[:3, 3]) / 2)
+    # Standing 5 sweeps, then 4 m/s^2 up to 1.5 m per 0.1 s sweep (37.5 sweeps at 0.04 m more
+    # each), in scans of 1.5 m.
+    ends = ramp(1.5, 60, rest=5, accel=4.0)
+    steps = np.diff(np.r_[0.0, ends])
+    assert np.all(steps[:5] == 0.0) and np.all(np.diff(steps) >= -1e-12)
+    np.testing.assert_allclose(steps[5], 0.4 * 0.1 / 1.5)
+    np.testing.assert_allclose(steps[45:], 1.0)
 
 
 @needs_kiss
