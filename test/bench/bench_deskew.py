@@ -23,9 +23,10 @@ The simulated heading carries a jitter (:mod:`solid_ros.sim.trajectory`, 2.5 deg
 average of white noise) whose turn rate changes from sweep to sweep: the yaw step of one sweep
 says little about the next, and a constant-velocity deskew turns the sweep the wrong way.
 ``--heading smooth`` smooths the heading over the scans (Gaussian, ``--sigma`` scans) so the
-turn rate changes as a vehicle's does; the printed yaw-step figures show the difference.
+turn rate changes as a vehicle's does (``both``, the default: one run of each); the printed
+yaw-step figures show the difference.
 Usage: ``python test/bench/bench_deskew.py [--scans 80] [--spacing 1.5] [--sectors 16]
-[--start rest|moving] [--heading simulated|smooth] [--report FILE]``.
+[--start rest|moving] [--heading simulated|smooth|both] [--report FILE]``.
 """
 
 from __future__ import annotations
@@ -152,20 +153,22 @@ def main() -> int:
     p.add_argument('--spacing', type=float, default=1.5)
     p.add_argument('--sectors', type=int, default=16)
     p.add_argument('--start', choices=('rest', 'moving'), default='rest')
-    p.add_argument('--heading', choices=('simulated', 'smooth'), default='simulated')
+    p.add_argument('--heading', choices=('simulated', 'smooth', 'both'), default='both')
     p.add_argument('--sigma', type=float, default=4.0, help='scans (--heading smooth)')
     p.add_argument('--report', type=Path)
     args = p.parse_args()
-    drive = Drive(DriveConfig(seed=0, sensor=DEMO_SENSORS[args.sensor], block=50.0,
-                              spacing=args.spacing))
-    if args.heading == 'smooth':
-        smooth_heading(drive, args.sigma)
+    headings = ['simulated', 'smooth'] if args.heading == 'both' else [args.heading]
     with PrintedReport(args.report, bench_meta('bench_deskew', vars(args))):
-        run(drive, args)
+        for heading in headings:
+            drive = Drive(DriveConfig(seed=0, sensor=DEMO_SENSORS[args.sensor], block=50.0,
+                                      spacing=args.spacing))
+            if heading == 'smooth':
+                smooth_heading(drive, args.sigma)
+            run(drive, args, heading)
     return 0
 
 
-def run(drive: Drive, args: argparse.Namespace) -> None:
+def run(drive: Drive, args: argparse.Namespace, heading: str) -> None:
     """Build the sweeps, run every row, print."""
     if args.start == 'rest':
         ends = ramp(args.spacing, args.scans, rest=5, accel=ACCEL)
@@ -182,7 +185,7 @@ def run(drive: Drive, args: argparse.Namespace) -> None:
     yaw = yaw_steps(ref)
     moving = np.diff(ends) > 0.999
     print(f'simulator {args.sensor}: {len(ends)} sweeps of {args.sectors} sectors, '
-          f'{args.spacing} m per sweep at speed, start {_start(args)}, heading {args.heading}; '
+          f'{args.spacing} m per sweep at speed, start {_start(args)}, heading {heading}; '
           f'max range {cfg.kiss_max_range:g} m, voxel {cfg.kiss_voxel_size:g} m\n'
           f'at speed, yaw per sweep: sd {np.std(yaw[moving]):.2f} deg; its change from one '
           f'sweep to the next: sd {np.std(np.diff(yaw[moving])):.2f} deg (what a '
