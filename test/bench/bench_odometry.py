@@ -8,9 +8,12 @@ apart) it runs, on the bag's clouds:
   per cloud, ``last_pose``), the way its own pipeline does;
 - ``ours``: :class:`solid_ros.core.odometry.kiss.KissOdometry` (checks, resets included),
 
-both with the same max range, min range, voxel size and deskew: those of ``--settings``
-(``derived``: what :func:`solid_ros.core.odometry.kiss.derive_settings` takes from the first
-clouds, the default; ``preset``: the preset's ``kiss_*`` values), and prints for each:
+both with the same max range, min range, voxel size: those of ``--settings`` (``derived``:
+what :func:`solid_ros.core.odometry.kiss.derive_settings` takes from the first clouds, the
+default; ``preset``: the preset's ``kiss_*`` values), and the same deskew: ``--deskew on``
+passes each cloud's per-point times (when the bag carries them) to both with deskew on,
+``off`` (the default) passes none. hku1 and quickshack carry no per-point times (fields x y z
+intensity): KISS-ICP then deskews nothing, on or off. Prints for each:
 
 - ATE: RMSE of the positions after an SE(3) (Umeyama, no scale) alignment to
   optimized_poses.txt (the reference; the bag's odometry is the same drift-free trajectory);
@@ -23,7 +26,7 @@ clouds, the default; ``preset``: the preset's ``kiss_*`` values), and prints for
 Timings on a shared 2-core machine are noisy. ``--report FILE`` writes the figures with the
 date and commit (Markdown for ``doc/reports/``, else JSON); ``--save DIR`` keeps the poses.
 Usage: ``python test/bench/bench_odometry.py [--sets hku1,quickshack,riv281] [--settings
-derived|preset] [--report FILE] [--save DIR]``.
+derived|preset] [--deskew on|off] [--report FILE] [--save DIR]``.
 """
 
 from __future__ import annotations
@@ -66,6 +69,13 @@ def load(name: str) -> tuple[list[FloatArray], list[int], FloatArray]:
     return clouds, stamps, read_kitti_poses(DATA / name / 'optimized_poses.txt')
 
 
+def point_times(name: str) -> list[FloatArray | None]:
+    """Each cloud's per-point times as the bag gives them (None: the cloud has none)."""
+    with Bag(DATA / name / 'bag') as bag:
+        return [None if scan.times is None else np.asarray(scan.times, dtype=np.float64)
+                for scan in bag.clouds('/points')]
+
+
 def settings(name: str, mode: str, clouds: list[FloatArray]) -> NodeConfig:
     """The odometry settings both runs use."""
     _, ncfg = load_config(ROOT / 'config' / PRESETS[name])
@@ -74,30 +84,33 @@ def settings(name: str, mode: str, clouds: list[FloatArray]) -> NodeConfig:
     return ncfg
 
 
-def plain(clouds: list[FloatArray], cfg: NodeConfig) -> tuple[FloatArray, list[float]]:
-    """KISS-ICP called directly; poses and seconds per cloud."""
+def plain(clouds: list[FloatArray], cfg: NodeConfig,
+          times: list[FloatArray | None]) -> tuple[FloatArray, list[float]]:
+    """KISS-ICP called directly (deskewing as ``cfg`` says, with ``times``); poses and seconds
+    per cloud."""
     KissICP, KISSConfig, _ = load_kiss_icp()
     kc = KISSConfig()
     kc.data.max_range, kc.data.min_range = cfg.kiss_max_range, cfg.kiss_min_range
-    kc.data.deskew, kc.mapping.voxel_size = False, cfg.kiss_voxel_size
+    kc.data.deskew, kc.mapping.voxel_size = cfg.kiss_deskew, cfg.kiss_voxel_size
     kiss = KissICP(kc)
     poses, costs = [], []
-    for points in clouds:
+    for points, point_times in zip(clouds, times):
         t0 = time.perf_counter()
-        kiss.register_frame(points, np.zeros(0))
+        kiss.register_frame(points, np.zeros(0) if point_times is None else point_times)
         costs.append(time.perf_counter() - t0)
         poses.append(np.array(kiss.last_pose, dtype=np.float64))
     return np.stack(poses), costs
 
 
-def ours(clouds: list[FloatArray], stamps: list[int], cfg: NodeConfig
-         ) -> tuple[FloatArray, list[float], KissOdometry, list[int]]:
+def ours(clouds: list[FloatArray], stamps: list[int], cfg: NodeConfig,
+         times: list[FloatArray | None]) -> tuple[FloatArray, list[float], KissOdometry,
+                                                   list[int]]:
     """The adapter; poses, seconds per cloud, the source and the clouds that reset it."""
     odo = KissOdometry(cfg)
     poses, costs, resets = [], [], []
-    for i, (points, stamp) in enumerate(zip(clouds, stamps)):
+    for i, (points, stamp, point_times) in enumerate(zip(clouds, stamps, times)):
         t0 = time.perf_counter()
-        sample = odo.pose_for(stamp, points)
+        sample = odo.pose_for(stamp, points, point_times)
         costs.append(time.perf_counter() - t0)
         assert sample is not None
         if sample.reason:
@@ -138,15 +151,19 @@ def realtime_fraction(stamps: list[int], costs: list[float]) -> float:
     return done / len(t)
 
 
-def run(name: str, mode: str, save: Path | None) -> dict[str, Any]:
+def run(name: str, mode: str, deskew: str, save: Path | None) -> dict[str, Any]:
     clouds, stamps, ref = load(name)
-    cfg = settings(name, mode, clouds)
+    cfg = replace(settings(name, mode, clouds), kiss_deskew=deskew == 'on')
+    times = point_times(name) if deskew == 'on' else [None] * len(clouds)
+    timed = sum(t is not None for t in times)
     print(f'{name}: {len(clouds)} clouds; max range {cfg.kiss_max_range:.1f} m, min range '
-          f'{cfg.kiss_min_range:.1f} m, voxel {cfg.kiss_voxel_size:.2f} m ({mode})', flush=True)
-    p_poses, p_costs = plain(clouds, cfg)
-    o_poses, o_costs, odo, resets = ours(clouds, stamps, cfg)
+          f'{cfg.kiss_min_range:.1f} m, voxel {cfg.kiss_voxel_size:.2f} m ({mode}); deskew '
+          f'{deskew}, {timed} clouds with per-point times', flush=True)
+    p_poses, p_costs = plain(clouds, cfg, times)
+    o_poses, o_costs, odo, resets = ours(clouds, stamps, cfg, times)
     p_track, o_track = tracked(p_poses, ref), tracked(o_poses, ref)
-    out: dict[str, Any] = {'clouds': len(clouds), 'max_range': cfg.kiss_max_range,
+    out: dict[str, Any] = {'clouds': len(clouds), 'timed_clouds': timed,
+                           'deskew': deskew, 'max_range': cfg.kiss_max_range,
                            'voxel': cfg.kiss_voxel_size, 'resets': odo.resets,
                            'reset_kinds': dict(odo.reset_counts),
                            'resets_where_plain_tracks': int(sum(p_track[i - 1] for i in resets
@@ -197,6 +214,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--sets', default=','.join(PRESETS))
     p.add_argument('--settings', choices=('derived', 'preset'), default='derived')
+    p.add_argument('--deskew', choices=('on', 'off'), default='off')
     p.add_argument('--report', type=Path)
     p.add_argument('--save', type=Path)
     args = p.parse_args()
@@ -206,7 +224,7 @@ def main() -> int:
     SolidConfig()  # the project imports cleanly before the long runs
     figures = {}
     for name in args.sets.split(','):
-        figures[name] = run(name, args.settings, args.save)
+        figures[name] = run(name, args.settings, args.deskew, args.save)
         print('\n'.join(lines(name, figures[name])), flush=True)
     if args.report is not None:
         meta = bench_meta('bench_odometry', vars(args) | {'sets': args.sets.split(',')})
