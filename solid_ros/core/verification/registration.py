@@ -29,7 +29,7 @@ import numpy.typing as npt
 from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.descriptor.solid import voxel_downsample
 from solid_ros.core.errors import SolidError
-from solid_ros.core.geometry import rot_z
+from solid_ros.core.geometry import rot_z, yaw_of
 
 __all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'Query', 'RangeImage',
            'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine', 'coarsened',
@@ -462,6 +462,10 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
         settings: registration settings.
         guesses: 4x4 ``T_mq`` (``p_match = T_mq p_query``) to start from before the yaws.
 
+    Each result keeps its start's height, roll and pitch (:func:`_upright`): structure is
+    upright surfaces, which pin the horizontal position and the heading but not those; the
+    fine stage sets them on all points, ground included.
+
     Returns:
         The start with the largest coarse overlap (``hypothesis`` is its index: guesses
         first); None when either cloud has too little structure to register.
@@ -483,7 +487,7 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
                        max_iterations=min(settings.max_iterations, _COARSE_ITERATIONS),
                        rotation_epsilon=_COARSE_ROTATION_EPS,
                        translation_epsilon=_COARSE_TRANSLATION_EPS)
-        T = np.asarray(res.T_target_source, dtype=np.float64)
+        T = _upright(np.asarray(res.T_target_source, dtype=np.float64), init)
         _, sq = query.coarse_tree.batch_nearest_neighbor_search(src_pts @ T[:3, :3].T + T[:3, 3])
         overlap = float(np.mean(np.asarray(sq) < (0.5 * settings.coarse_voxel) ** 2))
         if best is None or overlap > best.coarse_overlap:
@@ -491,6 +495,21 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
         if overlap >= _GOOD_COARSE:
             break
     return best
+
+
+def _upright(T: FloatArray, start: FloatArray) -> FloatArray:
+    """``T`` with the height, roll and pitch of ``start``: its horizontal position, and its
+    heading applied to ``start``'s tilt.
+
+    Upright structure leaves the height free, so the few edges it has decide it: where cars
+    had moved between the scans, the coarse stage moved the graph's guess (0.15 m off in
+    height) by 0.6-1.5 m up or down, beyond the fine stage's reach (two voxels), and the
+    ground could not pull it back.
+    """
+    out = np.array(start, dtype=np.float64)
+    out[:3, :3] = rot_z(yaw_of(T[:3, :3]) - yaw_of(start[:3, :3])) @ start[:3, :3]
+    out[:2, 3] = T[:2, 3]
+    return out
 
 
 def align_fine(query: Query, source: Source, T_qm: FloatArray,

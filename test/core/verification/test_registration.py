@@ -2,9 +2,22 @@
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
-from solid_ros.core.verification.registration import free_space_conflict, range_image
+import numpy as np
+import pytest
+
+from solid_ros.core.descriptor.solid import voxel_downsample
+from solid_ros.core.geometry import rpy_matrix
+from solid_ros.core.verification.registration import (
+    Query,
+    RegistrationSettings,
+    Source,
+    align_coarse,
+    align_fine,
+    free_space_conflict,
+    range_image,
+)
 
 
 def _wall(x: float, n: int = 40) -> np.ndarray:
@@ -29,3 +42,41 @@ def test_a_patch_in_seen_through_space_conflicts_scattered_points_do_not() -> No
     patch[near] *= 0.7
     coherent = free_space_conflict(patch, ranges, 1.0, cell=1.0, together=3)
     assert coherent == free_space_conflict(patch, ranges, 1.0) == near.mean()
+
+
+def _box(cx: float, cy: float, half: float, height: float, step: float = 0.1) -> np.ndarray:
+    """The four sides of an upright box standing on z = 0 (no top)."""
+    s = np.arange(-half, half + 1e-9, step)
+    z = np.arange(0.0, height + 1e-9, step)
+    a, h = np.meshgrid(s, z)
+    a, h = a.ravel(), h.ravel()
+    sides = [np.column_stack([np.full(a.size, cx + sx * half), cy + a, h]) for sx in (-1, 1)]
+    sides += [np.column_stack([cx + a, np.full(a.size, cy + sy * half), h]) for sy in (-1, 1)]
+    return np.concatenate(sides)
+
+
+def test_the_coarse_stage_keeps_the_starts_height_and_tilt_the_fine_stage_sets_them() -> None:
+    # Short upright objects (car-sized boxes) on the ground, seen from 1.8 m: their sides'
+    # ends pull the coarse stage's height, which moving cars made wrong by 0.6-1.5 m on the
+    # dynamic streets. Started 0.5 m high and 1 deg tilted, 0.6 m off horizontally, the coarse
+    # stage must fix only the horizontal pose; the fine stage, with the ground, the rest.
+    boxes = [_box(x, y, 1.0, 1.5) for x, y in [(6, 3), (-5, 4), (3, -6), (-7, -5), (9, -2),
+                                               (-2, 8)]]
+    g = np.arange(-12.0, 12.0, 0.25)
+    gx, gy = np.meshgrid(g, g)
+    ground = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    world = np.concatenate([*boxes, ground])
+    pts = voxel_downsample(world - [0.0, 0.0, 1.8], 0.5)
+    settings = RegistrationSettings()
+    query = Query(pts, settings)
+    source = Source(query.keyframe_cloud(), settings)
+    start = np.eye(4)
+    start[:3, :3] = rpy_matrix(math.radians(1.0), 0.0, 0.0)
+    start[:3, 3] = [0.4, -0.45, 0.5]
+    al = align_coarse(query, source, [], settings, [np.linalg.inv(start)])
+    assert al is not None
+    assert al.T_qm[2, 3] == pytest.approx(0.5)
+    assert np.allclose(al.T_qm[2, :3], start[2, :3])  # the same tilt
+    assert np.linalg.norm(al.T_qm[:2, 3]) < 0.1  # the boxes pin the horizontal pose
+    fine = align_fine(query, source, al.T_qm, settings)
+    assert np.linalg.norm(fine.T_qm[:3, 3]) < 0.05
