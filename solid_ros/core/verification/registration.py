@@ -504,7 +504,8 @@ def _upright(T: FloatArray, start: FloatArray) -> FloatArray:
     Upright structure leaves the height free, so the few edges it has decide it: where cars
     had moved between the scans, the coarse stage moved the graph's guess (0.15 m off in
     height) by 0.6-1.5 m up or down, beyond the fine stage's reach (two voxels), and the
-    ground could not pull it back.
+    ground could not pull it back. The tilt stays too: with the height alone held, the same
+    edges tilt the pose instead (car-sized boxes: the fine stage then stopped 0.4 m high).
     """
     out = np.array(start, dtype=np.float64)
     out[:3, :3] = rot_z(yaw_of(T[:3, :3]) - yaw_of(start[:3, :3])) @ start[:3, :3]
