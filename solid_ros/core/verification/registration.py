@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -29,7 +29,7 @@ import numpy.typing as npt
 from solid_ros.core.database.clouds import KeyframeCloud
 from solid_ros.core.descriptor.solid import voxel_downsample
 from solid_ros.core.errors import SolidError
-from solid_ros.core.geometry import rot_z, yaw_of
+from solid_ros.core.geometry import rot_z
 
 __all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'Query', 'RangeImage',
            'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine', 'coarsened',
@@ -136,6 +136,8 @@ class Query:
         self.structure: npt.NDArray[np.bool_] = np.zeros(len(pts), dtype=bool)
         # Row order that puts structure points first (stored clouds are kept this way).
         self.structure_first: npt.NDArray[np.intp] = np.arange(len(pts))
+        self.ground: FloatArray = np.zeros((0, 3))
+        self.ground_tree: Any = None
         if not self.usable:
             return
         cloud = sg.PointCloud(pts)
@@ -152,6 +154,10 @@ class Query:
         if self.coarse.size() >= _MIN_POINTS:
             sg.estimate_covariances(self.coarse, self.coarse_tree, num_neighbors=_NEIGHBOURS)
         self.structure_first = np.argsort(~self.structure, kind='stable')
+        # Horizontal surfaces (mostly ground): what sets the coarse stage's height.
+        self.ground = np.ascontiguousarray(pts[~self.structure])
+        if len(self.ground) >= _MIN_POINTS:
+            self.ground_tree = sg.KdTree(sg.PointCloud(self.ground))
 
     @property
     def n_struct(self) -> int:
@@ -462,9 +468,8 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
         settings: registration settings.
         guesses: 4x4 ``T_mq`` (``p_match = T_mq p_query``) to start from before the yaws.
 
-    Each result keeps its start's height, roll and pitch (:func:`_upright`): structure is
-    upright surfaces, which pin the horizontal position and the heading but not those; the
-    fine stage sets them on all points, ground included.
+    The kept pose's height is then set on the ground (:func:`_settle_height`): upright
+    structure does not pin it.
 
     Returns:
         The start with the largest coarse overlap (``hypothesis`` is its index: guesses
@@ -487,30 +492,44 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
                        max_iterations=min(settings.max_iterations, _COARSE_ITERATIONS),
                        rotation_epsilon=_COARSE_ROTATION_EPS,
                        translation_epsilon=_COARSE_TRANSLATION_EPS)
-        T = _upright(np.asarray(res.T_target_source, dtype=np.float64), init)
+        T = np.asarray(res.T_target_source, dtype=np.float64)
         _, sq = query.coarse_tree.batch_nearest_neighbor_search(src_pts @ T[:3, :3].T + T[:3, 3])
         overlap = float(np.mean(np.asarray(sq) < (0.5 * settings.coarse_voxel) ** 2))
         if best is None or overlap > best.coarse_overlap:
             best = Alignment(T, bool(res.converged), int(res.iterations), overlap, k)
         if overlap >= _GOOD_COARSE:
             break
+    if best is not None:
+        best = replace(best, T_qm=_settle_height(query, source, best.T_qm, settings))
     return best
 
 
-def _upright(T: FloatArray, start: FloatArray) -> FloatArray:
-    """``T`` with the height, roll and pitch of ``start``: its horizontal position, and its
-    heading applied to ``start``'s tilt.
+def _settle_height(query: Query, source: Source, T_qm: FloatArray,
+                   settings: RegistrationSettings) -> FloatArray:
+    """``T_qm`` moved vertically by the median height step from the candidate's horizontal
+    surfaces (its points that are not structure: mostly ground) to the nearest of the query's
+    within the coarse correspondence distance, twice.
 
     Upright structure leaves the height free, so the few edges it has decide it: where cars
     had moved between the scans, the coarse stage moved the graph's guess (0.15 m off in
     height) by 0.6-1.5 m up or down, beyond the fine stage's reach (two voxels), and the
-    ground could not pull it back. The tilt stays too: with the height alone held, the same
-    edges tilt the pose instead (car-sized boxes: the fine stage then stopped 0.4 m high).
+    ground could not pull it back. The median ignores the odd roof or table top. Fewer than
+    ``_MIN_POINTS`` pairs (no ground in view) leave the height as the coarse stage put it.
     """
-    out = np.array(start, dtype=np.float64)
-    out[:3, :3] = rot_z(yaw_of(T[:3, :3]) - yaw_of(start[:3, :3])) @ start[:3, :3]
-    out[:2, 3] = T[:2, 3]
-    return out
+    ground = source.points[source.n_struct:]
+    tree = query.ground_tree
+    if tree is None or len(ground) < _MIN_POINTS:
+        return T_qm
+    T = np.array(T_qm, dtype=np.float64)
+    for _ in range(2):
+        moved = ground @ T[:3, :3].T + T[:3, 3]
+        idx, sq = tree.batch_nearest_neighbor_search(moved)
+        near = np.asarray(sq) < settings.coarse_distance ** 2
+        if int(near.sum()) < _MIN_POINTS:
+            break
+        rows = np.asarray(idx, dtype=np.intp)[near]
+        T[2, 3] += float(np.median(query.ground[rows, 2] - moved[near, 2]))
+    return T
 
 
 def align_fine(query: Query, source: Source, T_qm: FloatArray,

@@ -44,10 +44,11 @@ def test_a_patch_in_seen_through_space_conflicts_scattered_points_do_not() -> No
     assert coherent == free_space_conflict(patch, ranges, 1.0) == near.mean()
 
 
-def _box(cx: float, cy: float, half: float, height: float, step: float = 0.1) -> np.ndarray:
-    """The four sides of an upright box standing on z = 0 (no top)."""
+def _box(cx: float, cy: float, half: float, z0: float, z1: float,
+         step: float = 0.1) -> np.ndarray:
+    """The four sides of an upright box from height ``z0`` to ``z1`` (no top)."""
     s = np.arange(-half, half + 1e-9, step)
-    z = np.arange(0.0, height + 1e-9, step)
+    z = np.arange(z0, z1 + 1e-9, step)
     a, h = np.meshgrid(s, z)
     a, h = a.ravel(), h.ravel()
     sides = [np.column_stack([np.full(a.size, cx + sx * half), cy + a, h]) for sx in (-1, 1)]
@@ -55,28 +56,31 @@ def _box(cx: float, cy: float, half: float, height: float, step: float = 0.1) ->
     return np.concatenate(sides)
 
 
-def test_the_coarse_stage_keeps_the_starts_height_and_tilt_the_fine_stage_sets_them() -> None:
-    # Short upright objects (car-sized boxes) on the ground, seen from 1.8 m: their sides'
-    # ends pull the coarse stage's height, which moving cars made wrong by 0.6-1.5 m on the
-    # dynamic streets. Started 0.5 m high and 1 deg tilted, 0.6 m off horizontally, the coarse
-    # stage must fix only the horizontal pose; the fine stage, with the ground, the rest.
-    boxes = [_box(x, y, 1.0, 1.5) for x, y in [(6, 3), (-5, 4), (3, -6), (-7, -5), (9, -2),
-                                               (-2, 8)]]
-    g = np.arange(-12.0, 12.0, 0.25)
+def _street(bodies: float) -> np.ndarray:
+    """Six car-sized boxes whose sides span ``bodies`` .. ``bodies`` + 1.5 m, two tall walls
+    at an angle and the ground, seen from 1.8 m."""
+    boxes = [_box(x, y, 1.0, bodies, bodies + 1.5)
+             for x, y in [(6, 3), (-5, 4), (3, -6), (-7, -5), (9, -2), (-2, 8)]]
+    walls = [_box(0.0, 0.0, 11.0, 0.0, 6.0, step=0.25)]
+    g = np.arange(-11.0, 11.0, 0.25)
     gx, gy = np.meshgrid(g, g)
     ground = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
-    world = np.concatenate([*boxes, ground])
-    pts = voxel_downsample(world - [0.0, 0.0, 1.8], 0.5)
+    return voxel_downsample(np.concatenate([*boxes, *walls, ground]) - [0.0, 0.0, 1.8], 0.5)
+
+
+def test_the_coarse_stage_takes_its_height_from_the_ground_not_from_short_structure() -> None:
+    # The candidate's short objects (cars that moved away; others stand there now) sit 1 m
+    # higher than the query's: their sides' ends pull the structure-only registration up, as
+    # moved cars pulled it 0.6-1.5 m on the dynamic streets, beyond the fine stage's reach.
+    # Started at the right pose, the coarse stage must end at the ground's height.
     settings = RegistrationSettings()
-    query = Query(pts, settings)
-    source = Source(query.keyframe_cloud(), settings)
+    query = Query(_street(0.2), settings)
+    source = Source(Query(_street(1.2), settings).keyframe_cloud(), settings)
     start = np.eye(4)
-    start[:3, :3] = rpy_matrix(math.radians(1.0), 0.0, 0.0)
-    start[:3, 3] = [0.4, -0.45, 0.5]
+    start[:3, :3] = rpy_matrix(0.0, 0.0, math.radians(2.0))
+    start[:3, 3] = [0.3, -0.3, 0.1]
     al = align_coarse(query, source, [], settings, [np.linalg.inv(start)])
     assert al is not None
-    assert al.T_qm[2, 3] == pytest.approx(0.5)
-    assert np.allclose(al.T_qm[2, :3], start[2, :3])  # the same tilt
-    assert np.linalg.norm(al.T_qm[:2, 3]) < 0.1  # the boxes pin the horizontal pose
+    assert abs(al.T_qm[2, 3]) < 0.1
     fine = align_fine(query, source, al.T_qm, settings)
-    assert np.linalg.norm(fine.T_qm[:3, 3]) < 0.05
+    assert abs(fine.T_qm[2, 3]) < 0.1
