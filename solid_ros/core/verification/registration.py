@@ -500,12 +500,13 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
         if overlap >= _GOOD_COARSE:
             break
     if best is not None:
-        best = replace(best, T_qm=_settle_height(query, source, best.T_qm, settings))
+        best = replace(best, T_qm=_settle_height(query, source, best.T_qm, settings,
+                                                 starts[best.hypothesis][2, 3]))
     return best
 
 
 def _settle_height(query: Query, source: Source, T_qm: FloatArray,
-                   settings: RegistrationSettings) -> FloatArray:
+                   settings: RegistrationSettings, start_z: float) -> FloatArray:
     """``T_qm`` moved vertically by the median height step from the candidate's horizontal
     surfaces (its points that are not structure: mostly ground) to the nearest of the query's
     within the coarse correspondence distance, twice.
@@ -513,19 +514,22 @@ def _settle_height(query: Query, source: Source, T_qm: FloatArray,
     Upright structure leaves the height free, so the few edges it has decide it: where cars
     had moved between the scans, the coarse stage moved the graph's guess (0.15 m off in
     height) by 0.6-1.5 m up or down, beyond the fine stage's reach (two voxels), and the
-    ground could not pull it back. The median ignores the odd roof or table top. Fewer than
-    ``_MIN_POINTS`` pairs (no ground in view) leave the height as the coarse stage put it.
+    ground could not pull it back. The median ignores the odd roof or table top. With fewer
+    than ``_MIN_POINTS`` pairs (no ground in one of the views: a facade filling it) nothing
+    observes the height, and the start's (``start_z``: the graph's guess, else level) stays.
     """
     ground = source.points[source.n_struct:]
     tree = query.ground_tree
-    if tree is None or len(ground) < _MIN_POINTS:
-        return T_qm
     T = np.array(T_qm, dtype=np.float64)
-    for _ in range(2):
-        moved = ground @ T[:3, :3].T + T[:3, 3]
-        idx, sq = tree.batch_nearest_neighbor_search(moved)
-        near = np.asarray(sq) < settings.coarse_distance ** 2
+    for k in range(2):
+        near = np.zeros(0, dtype=bool)
+        if tree is not None and len(ground) >= _MIN_POINTS:
+            moved = ground @ T[:3, :3].T + T[:3, 3]
+            idx, sq = tree.batch_nearest_neighbor_search(moved)
+            near = np.asarray(sq) < settings.coarse_distance ** 2
         if int(near.sum()) < _MIN_POINTS:
+            if k == 0:
+                T[2, 3] = start_z
             break
         rows = np.asarray(idx, dtype=np.intp)[near]
         T[2, 3] += float(np.median(query.ground[rows, 2] - moved[near, 2]))
