@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -136,6 +136,8 @@ class Query:
         self.structure: npt.NDArray[np.bool_] = np.zeros(len(pts), dtype=bool)
         # Row order that puts structure points first (stored clouds are kept this way).
         self.structure_first: npt.NDArray[np.intp] = np.arange(len(pts))
+        self.ground: FloatArray = np.zeros((0, 3))
+        self.ground_tree: Any = None
         if not self.usable:
             return
         cloud = sg.PointCloud(pts)
@@ -152,6 +154,10 @@ class Query:
         if self.coarse.size() >= _MIN_POINTS:
             sg.estimate_covariances(self.coarse, self.coarse_tree, num_neighbors=_NEIGHBOURS)
         self.structure_first = np.argsort(~self.structure, kind='stable')
+        # Horizontal surfaces (mostly ground): what sets the coarse stage's height.
+        self.ground = np.ascontiguousarray(pts[~self.structure])
+        if len(self.ground) >= _MIN_POINTS:
+            self.ground_tree = sg.KdTree(sg.PointCloud(self.ground))
 
     @property
     def n_struct(self) -> int:
@@ -462,6 +468,9 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
         settings: registration settings.
         guesses: 4x4 ``T_mq`` (``p_match = T_mq p_query``) to start from before the yaws.
 
+    The kept pose's height is then set on the ground (:func:`_settle_height`): upright
+    structure does not pin it.
+
     Returns:
         The start with the largest coarse overlap (``hypothesis`` is its index: guesses
         first); None when either cloud has too little structure to register.
@@ -490,7 +499,41 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
             best = Alignment(T, bool(res.converged), int(res.iterations), overlap, k)
         if overlap >= _GOOD_COARSE:
             break
+    if best is not None:
+        best = replace(best, T_qm=_settle_height(query, source, best.T_qm, settings,
+                                                 starts[best.hypothesis][2, 3]))
     return best
+
+
+def _settle_height(query: Query, source: Source, T_qm: FloatArray,
+                   settings: RegistrationSettings, start_z: float) -> FloatArray:
+    """``T_qm`` moved vertically by the median height step from the candidate's horizontal
+    surfaces (its points that are not structure: mostly ground) to the nearest of the query's
+    within the coarse correspondence distance, twice.
+
+    Upright structure leaves the height free, so the few edges it has decide it: where cars
+    had moved between the scans, the coarse stage moved the graph's guess (0.15 m off in
+    height) by 0.6-1.5 m up or down, beyond the fine stage's reach (two voxels), and the
+    ground could not pull it back. The median ignores the odd roof or table top. With fewer
+    than ``_MIN_POINTS`` pairs (no ground in one of the views: a facade filling it) nothing
+    observes the height, and the start's (``start_z``: the graph's guess, else level) stays.
+    """
+    ground = source.points[source.n_struct:]
+    tree = query.ground_tree
+    T = np.array(T_qm, dtype=np.float64)
+    for k in range(2):
+        near = np.zeros(0, dtype=bool)
+        if tree is not None and len(ground) >= _MIN_POINTS:
+            moved = ground @ T[:3, :3].T + T[:3, 3]
+            idx, sq = tree.batch_nearest_neighbor_search(moved)
+            near = np.asarray(sq) < settings.coarse_distance ** 2
+        if int(near.sum()) < _MIN_POINTS:
+            if k == 0:
+                T[2, 3] = start_z
+            break
+        rows = np.asarray(idx, dtype=np.intp)[near]
+        T[2, 3] += float(np.median(query.ground[rows, 2] - moved[near, 2]))
+    return T
 
 
 def align_fine(query: Query, source: Source, T_qm: FloatArray,
