@@ -754,9 +754,7 @@ class Support:
     def _patch_ids(self) -> npt.NDArray[np.intp]:
         """Coarse voxel (numbered 0 ..) of each supporting point."""
         cells = np.floor(self._moved[self._inlier] / self._settings.coarse_voxel)
-        _, inverse = np.unique(cells.astype(np.int64), axis=0, return_inverse=True)
-        ids: npt.NDArray[np.intp] = inverse.reshape(-1).astype(np.intp)
-        return ids
+        return _cell_ids(cells.astype(np.int64))
 
     @cached_property
     def patches(self) -> int:
@@ -765,6 +763,24 @@ class Support:
         if not self.inliers:
             return 0
         return int(self._patch_ids.max()) + 1
+
+
+def _cell_ids(cells: npt.NDArray[np.int64]) -> npt.NDArray[np.intp]:
+    """Each row's rank among the distinct rows of ``cells`` (N, 3) in lexicographic order:
+    ``np.unique(cells, axis=0, return_inverse=True)``'s inverse. The rows packed into one
+    integer key keep that order, and a 1-D unique of them is ten times faster (a millisecond
+    of every loop's covariance)."""
+    if not len(cells):
+        return np.zeros(0, dtype=np.intp)
+    d = cells - cells.min(axis=0)
+    span = d.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0 ** 62:  # too far apart to pack
+        _, inverse = np.unique(cells, axis=0, return_inverse=True)
+    else:
+        _, inverse = np.unique((d[:, 0] * span[1] + d[:, 1]) * span[2] + d[:, 2],
+                               return_inverse=True)
+    ids: npt.NDArray[np.intp] = inverse.reshape(-1).astype(np.intp)
+    return ids
 
 
 def _without_strongest_object(points: FloatArray, rows: FloatArray, cell: float) -> float:
