@@ -69,7 +69,8 @@ class KissProcess:
         config: node settings (``kiss_*``).
 
     Raises:
-        SolidError: kiss-icp is not installed (checked here, before the child starts).
+        SolidError: kiss-icp is not installed (checked here, before the child starts), or
+            the child did not start (it is waited for: its imports take seconds).
     """
 
     name = 'kiss_icp'
@@ -89,7 +90,15 @@ class KissProcess:
                                   daemon=True)
         self._child.start()
         child.close()
-        self._ready = False
+        # Its imports now, not in the first cloud's latency (the queue would drop clouds).
+        self._wait_ready()
+
+    def _wait_ready(self) -> None:
+        try:
+            self._answer(_STARTUP_SEC)
+        except (EOFError, OSError) as err:
+            raise SolidError(f'the KISS-ICP process did not start (exit code '
+                             f'{self._child.exitcode}): {err or "pipe closed"}') from err
 
     @property
     def pid(self) -> int | None:
@@ -108,9 +117,6 @@ class KissProcess:
         xyz = np.ascontiguousarray(np.asarray(points)[:, :3])
         times = None if point_times is None else np.asarray(point_times, dtype=np.float64)
         try:
-            if not self._ready:
-                self._answer(_STARTUP_SEC)
-                self._ready = True
             self._conn.send((int(stamp_ns), xyz, times))
             kind, value, _ = self._answer(None)
         except (EOFError, OSError) as err:
