@@ -62,7 +62,9 @@ def _run(harness: Callable[..., Harness], field: str | None,
     h.replay([('points', timed_cloud(drive.scan(i).points, (i + 1) * SEC, field))
               for i in range(4)])
     h.wait_for(lambda: len(odometry) == 4, 'an odometry message per cloud', 30.0)
-    h.wait_for(lambda: h.status().get('kiss_registered') == '4', 'diagnostics', 30.0)
+    # Diagnostics published after the last cloud went through (an older message may come last).
+    h.wait_for(lambda: (h.status().get('kiss_registered'), h.status().get('clouds_processed'))
+               == ('4', '4'), 'diagnostics', 30.0)
     status = h.status()
     # Registration ran on the node's odometry thread, KISS-ICP itself in another process.
     assert 'solid_odometry' in {t.name for t in threading.enumerate()}
@@ -70,7 +72,7 @@ def _run(harness: Callable[..., Harness], field: str | None,
     assert pid is not None and pid != os.getpid()
     assert status['odometry_queue_length'] == '0' and status['odometry_skipped'] == '0'
     assert status['odometry_ms_p50'] != 'nan'
-    assert status['clouds_processed'] == '4' and status['clouds_without_odom'] == '0'
+    assert status['clouds_without_odom'] == '0'
     return status
 
 
