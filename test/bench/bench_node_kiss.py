@@ -19,7 +19,8 @@ For each it prints the processed fraction (clouds that got a KISS-ICP pose on
 of which before registration ``odometry_skipped``), the node's per-cloud odometry cost
 (``odometry_ms_p50/p95`` on /diagnostics: registration including the hand-over to KISS-ICP's
 process) and, after the node has stopped, plain KISS-ICP 1.3's per-cloud cost on the same
-clouds in this process (``register_frame``, same settings). ``--node-root`` runs the node of
+clouds in this process (``register_frame``, same settings). The KITTI part runs again with
+``--coarse`` (KISS-ICP voxel 1 m, max range 30 m). ``--node-root`` runs the node of
 another checkout (e.g. main before the odometry stage; it reports no odometry_ms).
 Timings on a shared 2-core machine are noisy: the load is printed with each part.
 """
@@ -48,8 +49,13 @@ from bench.report import PrintedReport, bench_meta  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
 NS = 1_000_000_000
-KISS = ['-p', 'odometry_source:=kiss_icp', '-p', 'kiss_max_range:=50.0', '-p',
-        'kiss_voxel_size:=0.5', '-p', 'kiss_deskew:=false']
+RECIPE = (0.5, 50.0)  # KISS-ICP's voxel and max range, metres (bench_kiss.py's RECIPE)
+
+
+def kiss_args(voxel: float, max_range: float) -> list[str]:
+    """The node's KISS-ICP parameters."""
+    return ['-p', 'odometry_source:=kiss_icp', '-p', f'kiss_max_range:={max_range!r}', '-p',
+            f'kiss_voxel_size:={voxel!r}', '-p', 'kiss_deskew:=false']
 
 
 def _load() -> str:
@@ -75,15 +81,17 @@ def turned(points: np.ndarray, count: int, seed: int = 0) -> list[np.ndarray]:
     return out
 
 
-def plain_kiss(clouds: list[np.ndarray]) -> list[float]:
-    """KISS-ICP 1.3 alone as bench_kiss's RECIPE calls it; ms per cloud."""
+def plain_kiss(clouds: list[np.ndarray], voxel: float = RECIPE[0],
+               max_range: float = RECIPE[1]) -> list[float]:
+    """KISS-ICP 1.3 alone as bench_kiss's RECIPE calls it (or with this voxel and range); ms
+    per cloud."""
     from solid_ros.core.odometry.kiss import load_kiss_icp
 
     KissICP, KISSConfig, _ = load_kiss_icp()
     config = KISSConfig()
-    config.data.max_range = 50
+    config.data.max_range = max_range
     config.data.deskew = False
-    config.mapping.voxel_size = 0.5
+    config.mapping.voxel_size = voxel
     kiss = KissICP(config)
     costs = []
     for points in clouds:
@@ -195,11 +203,13 @@ class Probe:
         rclpy.try_shutdown()
 
 
-def start_node(params: Path, node_root: Path, probe: Probe) -> tuple[subprocess.Popen[str], Any]:
-    """The node process; returns it and its log file once it subscribes."""
+def start_node(params: Path, node_root: Path, probe: Probe,
+               kiss: tuple[float, float] = RECIPE) -> tuple[subprocess.Popen[str], Any]:
+    """The node process (KISS-ICP with ``kiss`` = (voxel, max range)); returns it and its log
+    file once it subscribes."""
     env = dict(os.environ, PYTHONPATH=str(node_root))
     cmd = [sys.executable, '-m', 'solid_ros.ros.node', '--ros-args', '--params-file',
-           str(params), *KISS, '-p', 'qos_reliability:=reliable',
+           str(params), *kiss_args(*kiss), '-p', 'qos_reliability:=reliable',
            '-p', 'diagnostics_period_sec:=0.5']
     log = tempfile.TemporaryFile(mode='w+')  # a pipe nobody reads would block the node
     proc = subprocess.Popen(cmd, env=env, stderr=log, stdout=log, text=True, cwd=node_root)
@@ -245,14 +255,13 @@ def bench_hku1(probe: Probe, args: argparse.Namespace) -> list[np.ndarray]:
     return clouds
 
 
-def bench_kitti(probe: Probe, args: argparse.Namespace) -> list[np.ndarray]:
-    from solid_ros.formats.pointfiles import read_pcd
-
-    clouds = turned(read_pcd(DATA / 'kitti' / 'pcd' / '000313.pcd'), 40)
-    proc, _ = start_node(ROOT / 'config' / 'hdl64.yaml', args.node_root, probe)
+def bench_kitti(probe: Probe, args: argparse.Namespace, clouds: list[np.ndarray],
+                kiss: tuple[float, float]) -> None:
+    proc, _ = start_node(ROOT / 'config' / 'hdl64.yaml', args.node_root, probe, kiss)
     try:
         probe.publish(clouds[:3], 2.0)  # warm-up
-        print(f'KITTI scan 313 turning, {len(clouds[0])} points per cloud:')
+        print(f'KITTI scan 313 turning, {len(clouds[0])} points per cloud, KISS-ICP voxel '
+              f'{kiss[0]:g} m, max range {kiss[1]:g} m:')
         _line(f'10 Hz for {args.duration:.0f} s', probe.publish(clouds, 10.0, args.duration),
               probe)
         best = 0.0
@@ -265,7 +274,6 @@ def bench_kitti(probe: Probe, args: argparse.Namespace) -> list[np.ndarray]:
         print(f'  highest rate tried with every 120k-point cloud kept: {best:g} Hz')
     finally:
         stop_node(proc)
-    return clouds
 
 
 def main() -> int:
@@ -280,6 +288,9 @@ def main() -> int:
     parser.add_argument('--node-root', type=Path, default=ROOT,
                         help='checkout whose solid_node runs (default: this one)')
     parser.add_argument('--skip-kitti', action='store_true')
+    parser.add_argument('--coarse', default='1.0,30.0',
+                        help="KITTI again with this KISS-ICP 'voxel,max_range' (what the README "
+                             "advises for 120k-point clouds); '' skips it")
     parser.add_argument('--report', type=Path, help='write the printed figures (.md or JSON)')
     args = parser.parse_args()
     if not (DATA / 'hku1').is_dir():
@@ -288,16 +299,24 @@ def main() -> int:
     os.environ['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
     with PrintedReport(args.report, bench_meta('bench_node_kiss', vars(args))):
         print(f'node from {args.node_root.resolve()} ({_load()})')
+        from solid_ros.formats.pointfiles import read_pcd
+
+        kitti = ([] if args.skip_kitti else
+                 turned(read_pcd(DATA / 'kitti' / 'pcd' / '000313.pcd'), 40))
+        settings = [RECIPE] + ([tuple(float(v) for v in args.coarse.split(','))]
+                               if args.coarse else [])
         probe = Probe()
         try:
             hku1 = bench_hku1(probe, args)
-            kitti = [] if args.skip_kitti else bench_kitti(probe, args)
+            for kiss in settings if kitti else []:
+                bench_kitti(probe, args, kitti, kiss)  # type: ignore[arg-type]
         finally:
             probe.close()
         print(f'plain KISS-ICP 1.3 in this process, same clouds ({_load()}):')
         print(f'  hku1: {_ms(plain_kiss(hku1))} per cloud')
-        if kitti:
-            print(f'  KITTI 120k turning: {_ms(plain_kiss(kitti))} per cloud')
+        for voxel, max_range in settings if kitti else []:
+            print(f'  KITTI 120k turning, voxel {voxel:g} m, max range {max_range:g} m: '
+                  f'{_ms(plain_kiss(kitti, voxel, max_range))} per cloud')
     return 0
 
 
