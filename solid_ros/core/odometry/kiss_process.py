@@ -2,9 +2,9 @@
 
 KISS-ICP 1.3's registration (``_align_points_to_map``, C++ through pybind11) holds the GIL for
 the whole alignment: measured on hku1 (``test/bench/bench_kiss_overlap.py``, doc/reports), a
-pure-Python thread kept 0.17 of its rate while it ran, and the loop closure's p95 per cloud went
-from 157 ms alone to 1351 ms with KISS-ICP on a thread of the same process (343 ms with KISS-ICP
-in another process; a loaded 2-core machine). So :class:`KissProcess` runs
+pure-Python thread kept 0.25 of its rate while it ran, and the loop closure's p95 per cloud went
+from 104 ms alone to 814 ms with KISS-ICP on a thread of the same process (291 ms with KISS-ICP
+in another process; a shared 2-core machine). So :class:`KissProcess` runs
 :class:`~solid_ros.core.odometry.kiss.KissOdometry` in a child process (started with ``spawn``:
 forking a process that runs DDS threads is not safe) and sends it each cloud over a pipe; the
 caller's thread waits for the pose without the GIL. The child ends when the pipe closes
