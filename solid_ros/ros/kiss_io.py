@@ -1,7 +1,11 @@
 """KISS-ICP as solid_node's odometry (``odometry_source: kiss_icp``).
 
-The describe thread registers each cloud (:class:`~solid_ros.core.odometry.kiss.KissOdometry`)
-before describing it, never a subscription callback. Each pose goes out as nav_msgs/Odometry
+The node's odometry thread (:mod:`solid_ros.ros.stages`) registers each cloud before the
+describe thread gets it, never a subscription callback, with
+:class:`~solid_ros.core.odometry.kiss.KissOdometry` in a process of its own
+(:class:`~solid_ros.core.odometry.kiss_process.KissProcess`: KISS-ICP holds the GIL while it
+aligns, which would stall the describe and verify threads). Clouds that carry per-point times
+come with them (deskew, ``kiss_deskew``). Each pose goes out as nav_msgs/Odometry
 on ``~/kiss/odometry`` and as the ``odom_frame -> sensor`` transform on ``/tf`` (frames from
 ``odom_frame``, default ``odom``, and ``sensor_frame``, default the cloud's header frame), so
 the back end's map -> odom correction and RViz work with the node alone; never one from a
@@ -21,7 +25,7 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 
 from solid_ros.core.config import NodeConfig
-from solid_ros.core.odometry.kiss import KissOdometry
+from solid_ros.core.odometry.kiss_process import KissProcess
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.stamps import split_stamp
 from solid_ros.ros.frames import DEFAULT_ODOM_FRAME, SelfTransformGuard, odom_sensor_advice
@@ -42,7 +46,7 @@ class KissIO:
     """
 
     def __init__(self, node: Node, cfg: NodeConfig) -> None:
-        self._source = KissOdometry(cfg)
+        self._source = KissProcess(cfg)
         self._log = node.get_logger()
         self.frame = cfg.odom_frame or DEFAULT_ODOM_FRAME
         self._sensor_frame = cfg.sensor_frame
@@ -61,10 +65,11 @@ class KissIO:
         """Times the source lost track and restarted."""
         return int(self._source.resets)
 
-    def pose_for(self, stamp_ns: int, points: npt.NDArray[np.floating[Any]],
-                 cloud_frame: str) -> OdomSample | None:
-        """Register the cloud; publish and return its pose (describe thread)."""
-        sample = self._source.pose_for(stamp_ns, points)
+    def pose_for(self, stamp_ns: int, points: npt.NDArray[np.floating[Any]], cloud_frame: str,
+                 point_times: npt.NDArray[np.float64] | None = None) -> OdomSample | None:
+        """Register the cloud (with its per-point times, if any); publish and return its pose
+        (odometry thread)."""
+        sample = self._source.pose_for(stamp_ns, points, point_times)
         if sample is None:
             return None
         if sample.reason is not None:
@@ -80,9 +85,14 @@ class KissIO:
             self._tf_pub.publish(transform_msg(sample.pose, stamp_ns, self.frame, child))
         return sample
 
+    def close(self) -> None:
+        """End KISS-ICP's process."""
+        self._source.close()
+
     def values(self) -> dict[str, object]:
         """/diagnostics values of the odometry."""
         out: dict[str, object] = {'kiss_registered': self._source.registered,
+                                  'kiss_deskewed': self._source.deskewed,
                                   'kiss_resets': self.resets}
         for kind, count in sorted(dict(self._source.reset_counts).items()):
             out[f'kiss_reset_{kind}'] = count

@@ -21,10 +21,12 @@ parameter changes that weaken the node are refused unless ``allow_runtime_weaken
 
 Threading (:mod:`solid_ros.ros.stages`): the subscription callback only decodes (zero-copy)
 or rejects a cloud and hands it to a bounded queue; when the queue is full the oldest waiting
-cloud is dropped (keep newest) and counted as skipped. A describe thread pairs odometry,
-describes, searches and stores; a verify thread verifies keyframes and hands each on (with
-``verify`` off the describe thread does that too), so the executor is never blocked by
-descriptor computation or registration.
+cloud is dropped (keep newest) and counted as skipped. With ``odometry_source: kiss_icp`` an
+odometry thread registers each cloud first (KISS-ICP itself in a process of its own,
+:mod:`solid_ros.ros.kiss_io`), with its per-point times when it has them. A describe thread
+pairs odometry, describes, searches and stores; a verify thread verifies keyframes and
+hands each on (with ``verify`` off the describe thread does that too), so the executor is
+never blocked by descriptor computation or registration.
 
 The per-scan flow is the product's :class:`~solid_ros.core.flow.closure.LoopClosure`, the one
 the replay and the demo run; the node wires ROS to it. Where a keyframe's result goes:
@@ -65,7 +67,7 @@ from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.stamps import join_stamp, seconds_to_ns
 from solid_ros.formats.peers import key_id
-from solid_ros.formats.pointcloud2 import cloud_to_xyz
+from solid_ros.formats.pointcloud2 import cloud_point_times, cloud_to_xyz
 from solid_ros.formats.poses import PoseError, odometry_to_pose
 from solid_ros.ros.backend_io import BackendIO
 from solid_ros.ros.cli import check_parameter_files, scan_arguments, usage
@@ -149,7 +151,8 @@ class SolidNode(Node):
             queue_size=cfg.queue_size, verify=self._solid_cfg.verify,
             use_odom=self._odom is not None or self._kiss is not None,
             share=self._peers.share if self._peers is not None else None,
-            sensor=SensorWatch(self._solid_cfg, self.get_logger()))
+            sensor=SensorWatch(self._solid_cfg, self.get_logger()),
+            register=self._register if self._kiss is not None else None)
         self._stages.start()
         self.get_logger().info(
             f'ready: database {self._shared.size} scans, FOV {self._solid_cfg.fov_width_deg} '
@@ -313,16 +316,27 @@ class SolidNode(Node):
             line = self._health.untrusted_stamp(problem, header)
             if line is not None:
                 self.get_logger().warning(line)
+        times = self._point_times(msg, points.shape[0])
         cap = self._node_cfg.max_points_per_cloud
         if points.shape[0] > cap:
-            points = self._thin(points, cap)
+            step = -(-points.shape[0] // cap)
+            points = self._thin(points, cap, step)
+            times = None if times is None else times[::step]
         self._cloud_frame = msg.header.frame_id
-        self._stages.put((points, stamp))
+        self._stages.put((points, stamp), times)
 
-    def _thin(self, points: Any, cap: int) -> Any:
-        """Every k-th point of a cloud beyond ``max_points_per_cloud`` (a copy, so the huge
-        message is freed when the callback returns)."""
-        step = -(-points.shape[0] // cap)
+    def _point_times(self, msg: PointCloud2, count: int) -> Any:
+        """The cloud's per-point times in [0, 1] for KISS-ICP's deskew (``kiss_deskew``,
+        ``kiss_time_field``), or None (no KISS-ICP, no deskew, no usable time field)."""
+        cfg = self._node_cfg
+        if self._kiss is None or not cfg.kiss_deskew:
+            return None
+        found = cloud_point_times(msg, cfg.kiss_time_field)
+        return None if found is None or len(found[0]) != count else found[0]
+
+    def _thin(self, points: Any, cap: int, step: int) -> Any:
+        """Every ``step``-th point of a cloud beyond ``max_points_per_cloud`` (a copy, so the
+        huge message is freed when the callback returns)."""
         self.stats.downsampled += 1
         self._points.request()
         self.get_logger().warning(
@@ -357,14 +371,16 @@ class SolidNode(Node):
     def _odom_frame(self) -> str:
         return self._odom.frame_id if self._odom is not None else ''
 
+    def _register(self, stamp_ns: int, points: Any, times: Any) -> OdomSample | None:
+        """KISS-ICP's registration of the cloud (odometry thread)."""
+        assert self._kiss is not None
+        # The detector's stamp: monotonic even when the header's is not.
+        return self._kiss.pose_for(stamp_ns, points, self._cloud_frame, times)
+
     def _pose_for(self, stamp_ns: int, points: Any) -> OdomSample | None:
-        """The cloud's pose: KISS-ICP's registration of it, or the odometry within
-        ``odom_tolerance_sec`` of it (waits briefly if it lags, while someone publishes
-        odometry); for a cloud whose stamp cannot be trusted, the odometry that was newest
-        when it arrived."""
-        if self._kiss is not None:
-            # The detector's stamp: monotonic even when the header's is not.
-            return self._kiss.pose_for(stamp_ns, points, self._cloud_frame)
+        """The cloud's pose: the odometry within ``odom_tolerance_sec`` of it (waits briefly
+        if it lags, while someone publishes odometry); for a cloud whose stamp cannot be
+        trusted, the odometry that was newest when it arrived."""
         if self._odom is None:
             return None
         header_ns, trusted = self._stamps.source(stamp_ns)
@@ -464,6 +480,10 @@ class SolidNode(Node):
         values.update(self._stages.timings.values())
         values.update({'verify_queue_length': keyframes_waiting,
                        'verify_skipped': self.stats.verify_skipped})
+        odometry_waiting = self._stages.odometry_waiting
+        if odometry_waiting is not None:
+            values.update({'odometry_queue_length': odometry_waiting,
+                           'odometry_skipped': self.stats.odometry_skipped})
         values.update(self._shared.values())
         values['inter_robot_loops'] = self.stats.inter_robot_loops
         if self._peers is not None:
@@ -484,6 +504,8 @@ class SolidNode(Node):
         if self._odom is not None:
             self._odom.close()  # a describe thread waiting for odometry returns now
         self._stages.stop(_JOIN_SEC)
+        if self._kiss is not None:
+            self._kiss.close()
         if self._backend is not None:
             self._backend.stop(_JOIN_SEC)
         if self._peers is not None:

@@ -1,15 +1,20 @@
-"""The flow of one scan through solid_node: a describe thread, then a verify thread.
+"""The flow of one scan through solid_node: odometry, describe and verify threads.
 
 The threads run the product's loop closure (:class:`~solid_ros.core.flow.closure.LoopClosure`,
-through :class:`~solid_ros.ros.shared_detector.SharedDetector`): stage 1 (describe thread)
-pairs the cloud with odometry and proposes it (describe, search, store); stage 2 (verify
+through :class:`~solid_ros.ros.shared_detector.SharedDetector`): with a registering odometry
+(KISS-ICP) stage 0 (odometry thread) registers each cloud first, so that the describe thread
+never waits for it; stage 1 (describe thread) pairs the cloud with odometry (stage 0's pose,
+or the odometry topic's) and proposes it (describe, search, store); stage 2 (verify
 thread) verifies each keyframe's candidates in keyframe order, with the pose graph's hint, and
 hands the result on as one :class:`Verified`, whose receiver publishes its loops and then
 commits it to the back end. With ``verify`` off stage 1 hands on itself: what is left
 takes well under a millisecond, less than waking the other thread. Each stage is a
 :class:`~solid_ros.ros.worker.Worker` with a bounded keep-newest queue; drops and failures are
-counted by :class:`~solid_ros.ros.health.InputHealth` and logged, and the stages go on. No
-ROS import: the node passes its odometry pairing, its output and its logger in.
+counted by :class:`~solid_ros.ros.health.InputHealth` and logged, and the stages go on. A
+cloud the odometry stage drops is never registered nor stored (counted as skipped and as
+odometry_skipped): KISS-ICP bridges the gap with its constant-velocity guess (and the
+adapter's time-scaled one). No ROS import: the node passes its odometry, its output and its
+logger in.
 """
 
 from __future__ import annotations
@@ -39,6 +44,9 @@ __all__ = ['Cloud', 'Stages', 'Verified']
 MIN_PROPOSALS = 20  # keyframes that may wait for verification (at least queue_size)
 
 Cloud = tuple[npt.NDArray[np.floating[Any]], int]  # (points, stamp_ns) of a decoded cloud
+Times = npt.NDArray[np.float64] | None  # per-point times in [0, 1] (deskew), if the cloud has them
+# The odometry stage's registration: (stamp_ns, points, times) -> pose.
+Register = Callable[[int, npt.NDArray[np.floating[Any]], Times], OdomSample | None]
 
 
 class Log(Protocol):
@@ -68,13 +76,22 @@ class Verified:
 
 
 @dataclass(frozen=True)
+class _Scan:
+    points: npt.NDArray[np.floating[Any]]
+    stamp_ns: int
+    times: Times = None
+    odom: OdomSample | None = None
+    registered: bool = False  # odom is the odometry stage's (else pair it on stage 1)
+
+
+@dataclass(frozen=True)
 class _Keyframe:
     proposal: Proposal
     odom: OdomSample | None
 
 
 class Stages:
-    """The describe and verify threads of the node.
+    """The odometry (optional), describe and verify threads of the node.
 
     Args:
         shared: the detector both stages use.
@@ -88,6 +105,8 @@ class Stages:
         use_odom: whether a cloud without odometry counts as such.
         share: sends each keyframe's descriptor to peer robots, if any.
         sensor: checks the first clouds against the settings, if given.
+        register: registers each cloud on an odometry thread of its own before stage 1 (then
+            ``pair`` is not called), if given.
     """
 
     def __init__(self, shared: SharedDetector, health: InputHealth,
@@ -95,27 +114,48 @@ class Stages:
                  hand_on: Callable[[Verified], None],
                  log: Log, *, queue_size: int, verify: bool, use_odom: bool,
                  share: Callable[[Proposal], None] | None = None,
-                 sensor: SensorWatch | None = None) -> None:
+                 sensor: SensorWatch | None = None, register: Register | None = None) -> None:
         self.timings = StageTimings()
         self._sensor = sensor
         self._shared, self._health, self._log = shared, health, log
         self._pair, self._hand_on, self._share = pair, hand_on, share
         self._verify, self._use_odom = verify, use_odom
-        self._describe_worker: Worker[Cloud] = Worker(
+        self._register = register
+        self._describe_worker: Worker[_Scan] = Worker(
             'solid_describe', self._describe_stage, queue_size, self._describe_failed)
         self._verify_worker: Worker[_Keyframe] = Worker(
             'solid_verify', self._verify_stage, max(MIN_PROPOSALS, queue_size),
             self._verify_failed, prepare=self._import_registration)
-        self._workers = (self._describe_worker, self._verify_worker)
+        self._odometry_worker: Worker[_Scan] | None = None
+        workers: list[Worker[Any]] = [self._describe_worker, self._verify_worker]
+        if register is not None:
+            self._odometry_worker = Worker('solid_odometry', self._odometry_stage, queue_size,
+                                           self._describe_failed)
+            workers.insert(0, self._odometry_worker)
+        self._workers = tuple(workers)
 
     def start(self) -> None:
-        """Start both threads."""
+        """Start the threads."""
         for worker in self._workers:
             worker.start()
 
-    def put(self, cloud: Cloud) -> None:
-        """Queue a decoded cloud for stage 1 (the oldest waiting one is dropped when full)."""
-        if self._describe_worker.put(cloud):
+    def put(self, cloud: Cloud, times: Times = None) -> None:
+        """Queue a decoded cloud (and its per-point times) for the first stage; when its queue
+        is full the oldest waiting cloud is dropped."""
+        scan = _Scan(cloud[0], cloud[1], times)
+        if self._odometry_worker is None:
+            self._to_describe(scan)
+        elif self._odometry_worker.put(scan):
+            skipped = self._health.trouble('skipped')
+            self._health.stats.odometry_skipped += 1  # only this thread writes it
+            self._log.warning(
+                'odometry falls behind: dropped the oldest cloud waiting for registration '
+                f'({skipped} skipped so far; KISS-ICP bridges the gap with its '
+                'constant-velocity guess; the cloud is not stored)',
+                throttle_duration_sec=WARN_THROTTLE_SEC)
+
+    def _to_describe(self, scan: _Scan) -> None:
+        if self._describe_worker.put(scan):
             skipped = self._health.trouble('skipped')
             self._log.warning(
                 f'processing falls behind: dropped the oldest waiting cloud ({skipped} skipped '
@@ -131,17 +171,22 @@ class Stages:
         """Clouds waiting for stage 1 and keyframes waiting for stage 2."""
         return len(self._describe_worker), len(self._verify_worker)
 
+    @property
+    def odometry_waiting(self) -> int | None:
+        """Clouds waiting for the odometry stage (None: there is none)."""
+        return None if self._odometry_worker is None else len(self._odometry_worker)
+
     def clear(self) -> None:
-        """Forget what waits in both stages (``~/reset``)."""
+        """Forget what waits in the stages (``~/reset``)."""
         for worker in self._workers:
             worker.clear()
 
     def wait_idle(self, timeout: float) -> bool:
-        """Block until both stages are idle with nothing waiting; return False on timeout."""
+        """Block until the stages are idle with nothing waiting; return False on timeout."""
         deadline = time.monotonic() + timeout
         while True:
-            # Stage 1 hands a keyframe on before it goes idle: once it is idle after stage 2
-            # was, both are.
+            # A stage hands its item on before it goes idle: once each is idle after the
+            # ones behind it were, all are.
             for worker in self._workers:
                 if not worker.wait_idle(deadline - time.monotonic()):
                     return False
@@ -149,7 +194,7 @@ class Stages:
                 return True
 
     def stop(self, join_sec: float) -> None:
-        """End both threads after the items they handle, waiting up to ``join_sec`` each."""
+        """End the threads after the items they handle, waiting up to ``join_sec`` each."""
         for worker in self._workers:
             worker.stop()
         for worker in self._workers:
@@ -157,12 +202,19 @@ class Stages:
 
     # -- on the threads ----------------------------------------------------------------------
 
-    def _describe_stage(self, cloud: Cloud) -> None:
-        points, stamp_ns = cloud
+    def _odometry_stage(self, scan: _Scan) -> None:
+        assert self._register is not None
+        t0 = time.perf_counter()
+        odom = self._register(scan.stamp_ns, scan.points, scan.times)
+        self.timings.add('odometry', (time.perf_counter() - t0) * 1e3)
+        self._to_describe(_Scan(scan.points, scan.stamp_ns, None, odom, registered=True))
+
+    def _describe_stage(self, scan: _Scan) -> None:
+        points, stamp_ns = scan.points, scan.stamp_ns
         if self._sensor is not None:
             self._sensor.add(points)
         t0 = time.perf_counter()
-        odom = self._pair(stamp_ns, points)
+        odom = scan.odom if scan.registered else self._pair(stamp_ns, points)
         proposal = self._shared.propose(points, stamp_ns, odom)
         self.timings.add_total((time.perf_counter() - t0) * 1e3)
         stats = self._health.stats

@@ -10,7 +10,7 @@ import numpy as np
 
 __all__ = ['NodeStats', 'StageTimings']
 
-STAGES = ('describe', 'search', 'verify', 'step')
+STAGES = ('describe', 'search', 'verify', 'step', 'odometry')
 
 
 @dataclass
@@ -25,6 +25,7 @@ class NodeStats:
     loops: int = 0
     without_odom: int = 0
     verify_skipped: int = 0
+    odometry_skipped: int = 0  # of skipped: dropped before registration (KISS-ICP)
     inter_robot_loops: int = 0
     downsampled: int = 0
     odom_rejected: int = 0
@@ -35,7 +36,8 @@ class NodeStats:
 
 class StageTimings:
     """Milliseconds of the newest scans: the whole describe stage (odometry pairing and the
-    detector's descriptor stage) and each of the detector's stages.
+    detector's descriptor stage), each of the detector's stages and the odometry stage's
+    registration (KISS-ICP).
 
     Args:
         keep: newest times kept per series.

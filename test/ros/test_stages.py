@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -171,3 +172,86 @@ def test_the_describe_thread_checks_the_first_clouds_once() -> None:
     assert len(out) == 4
     assert [level for level, _ in log.lines] == ['warning']
     assert 'fov_up_deg' in log.lines[0][1]
+
+
+class SlowOdometry:
+    """An odometry stage's registration that takes ``delay`` seconds per cloud and notes its
+    thread, the per-point times it got and when each cloud's registration ended."""
+
+    def __init__(self, delay: float) -> None:
+        self.delay = delay
+        self.threads: list[str] = []
+        self.times: list[Any] = []
+        self.done: dict[int, float] = {}
+
+    def __call__(self, stamp_ns: int, points: Any, times: Any) -> OdomSample:
+        self.threads.append(threading.current_thread().name)
+        self.times.append(times)
+        time.sleep(self.delay)
+        self.done[stamp_ns] = time.monotonic()
+        return OdomSample(stamp_ns, np.eye(4))
+
+
+def _stages_with(register: SlowOdometry, queue_size: int
+                 ) -> tuple[Stages, InputHealth, Log, dict[int, float]]:
+    config = LOOP_EVERY_SCAN.replace(verify=False)
+    shared = SharedDetector(LoopClosure(LoopDetector(config)))
+    health = InputHealth('/points', None, 'reliable', 0.05, lambda topic: 0)
+    log = Log()
+    described: dict[int, float] = {}
+
+    def hand_on(v: Verified) -> None:
+        described[v.result.stamp_ns] = time.monotonic()
+
+    def pair(stamp_ns: int, points: Any) -> OdomSample | None:
+        raise AssertionError('with an odometry stage the describe stage pairs nothing')
+
+    stages = Stages(shared, health, pair, hand_on, log, queue_size=queue_size, verify=False,
+                    use_odom=True, register=register)
+    return stages, health, log, described
+
+
+def test_a_slow_odometry_runs_on_its_own_thread_and_never_holds_the_describe_stage() -> None:
+    slow = SlowOdometry(0.4)
+    stages, health, log, described = _stages_with(slow, queue_size=10)
+    stages.start()
+    pts = scene()
+    times = np.linspace(0.0, 1.0, len(pts))
+    try:
+        t0 = time.monotonic()
+        for i in range(3):
+            stages.put((pts, (i + 1) * SEC), times if i == 0 else None)
+        assert time.monotonic() - t0 < 0.2  # the caller (subscription callback) never waits
+        assert stages.odometry_waiting is not None
+        assert stages.wait_idle(60.0)
+    finally:
+        stages.stop(10.0)
+    assert set(slow.threads) == {'solid_odometry'}
+    assert slow.times[0] is times and slow.times[1:] == [None, None]
+    assert sorted(described) == [SEC, 2 * SEC, 3 * SEC]
+    # Cloud 1 was described while cloud 2 was still being registered: the describe stage
+    # waits for no registration but its own cloud's.
+    assert described[SEC] < slow.done[2 * SEC]
+    assert health.stats.processed == 3 and health.stats.without_odom == 0
+    assert stages.timings.values()['odometry_ms_p50'] != 'nan'
+    assert float(stages.timings.values()['odometry_ms_p50']) >= 400.0
+    assert log.lines == []
+
+
+def test_clouds_the_odometry_stage_drops_are_counted_and_logged() -> None:
+    slow = SlowOdometry(0.3)
+    stages, health, log, described = _stages_with(slow, queue_size=1)
+    stages.start()
+    pts = scene()
+    try:
+        for i in range(5):
+            stages.put((pts, (i + 1) * SEC))
+        assert stages.wait_idle(60.0)
+    finally:
+        stages.stop(10.0)
+    # One cloud registered at once, one waiting: three were dropped, oldest first.
+    s = health.stats
+    assert s.odometry_skipped == s.skipped == 5 - len(described) > 0
+    assert s.processed == len(described) and 5 * SEC in described
+    warned = [m for level, m in log.lines if level == 'warning']
+    assert warned and 'odometry falls behind' in warned[0] and 'not stored' in warned[0]

@@ -98,6 +98,7 @@ class KissOdometry:
         recovered: clouds whose registration from KISS-ICP's guess failed the checks and that
             registered from another guess instead, by guess ('time-scaled', 'standstill').
         registered: clouds registered.
+        deskewed: clouds that came with per-point times while ``kiss_deskew`` is on.
     """
 
     name = 'kiss_icp'
@@ -109,6 +110,7 @@ class KissOdometry:
         self.segment = 0
         self.resets = 0
         self.registered = 0
+        self.deskewed = 0
         self.reset_counts: Counter[str] = Counter()
         self.input_counts: Counter[str] = Counter()
         self._origin: FloatArray = np.eye(4)  # odom <- this segment's KISS-ICP frame
@@ -175,6 +177,8 @@ class KissOdometry:
         times = np.zeros(0) if point_times is None else np.ravel(
             np.asarray(point_times, dtype=np.float64))
         times = times[keep] if len(times) == len(keep) else np.zeros(0)
+        if len(times) and c.kiss_deskew:
+            self.deskewed += 1
         check = self._prepare(frame)
         if self._kiss is not None and check.constraint < c.kiss_min_constraint:
             self._reset('degenerate', f'degenerate cloud: translation constraint '

@@ -1,0 +1,324 @@
+"""solid_node with ``odometry_source: kiss_icp`` fed real clouds at 10 Hz: does it keep them?
+
+Run: ``nice python test/bench/bench_node_kiss.py [--clouds 150] [--duration 20]
+[--report doc/reports/bench_node_kiss.md] [--node-root ../main]``.
+
+The node runs in its own process (``python -m solid_ros.ros.node``) with KISS-ICP set as
+test/bench/bench_kiss.py's RECIPE (max range 50 m, voxel 0.5 m, no deskew) and the default
+``queue_size``. The bench publishes, at 10 Hz with 0.1 s stamps:
+
+1. hku1 (real Livox Avia keyframes, 3.5k-13k points, config/avia.yaml): the first
+   ``--clouds`` clouds in order;
+2. KITTI scan 313 (~121k points, HDL-64, config/hdl64.yaml), turned by 1 deg more per cloud
+   (up to 39 deg, then back) and jittered by 2 cm (a sensor turning slowly in place): the
+   same real scan, so that odometry has a motion to follow, for ``--duration`` seconds; then
+   the same at the ``--rates`` to find the highest rate at which no cloud is dropped.
+
+For each it prints the processed fraction (clouds that got a KISS-ICP pose on
+``~/kiss/odometry`` over clouds published), the clouds the node dropped (``clouds_skipped``,
+of which before registration ``odometry_skipped``), the node's per-cloud odometry cost
+(``odometry_ms_p50/p95`` on /diagnostics: registration including the hand-over to KISS-ICP's
+process) and, after the node has stopped, plain KISS-ICP 1.3's per-cloud cost on the same
+clouds in this process (``register_frame``, same settings). The KITTI part runs again with
+``--coarse`` (KISS-ICP voxel 1 m, max range 30 m). ``--node-root`` runs the node of
+another checkout (e.g. main before the odometry stage; it reports no odometry_ms).
+Timings on a shared 2-core machine are noisy: the load is printed with each part.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / 'test'))
+
+from bench.report import PrintedReport, bench_meta  # noqa: E402
+
+DATA = ROOT.parent / 'shared' / 'data'
+NS = 1_000_000_000
+RECIPE = (0.5, 50.0)  # KISS-ICP's voxel and max range, metres (bench_kiss.py's RECIPE)
+
+
+def kiss_args(voxel: float, max_range: float) -> list[str]:
+    """The node's KISS-ICP parameters."""
+    return ['-p', 'odometry_source:=kiss_icp', '-p', f'kiss_max_range:={max_range!r}', '-p',
+            f'kiss_voxel_size:={voxel!r}', '-p', 'kiss_deskew:=false']
+
+
+def _load() -> str:
+    return f'load {os.getloadavg()[0]:.1f}'
+
+
+def _ms(values: list[float]) -> str:
+    v = np.asarray(values, dtype=np.float64)
+    return f'median {np.median(v):6.1f} ms, p95 {np.percentile(v, 95):6.1f} ms'
+
+
+def turned(points: np.ndarray, count: int, seed: int = 0) -> list[np.ndarray]:
+    """The scan turned by 1 deg more per cloud and jittered by 2 cm (published there and back,
+    :func:`there_and_back`: a jump back to the first would reset the odometry)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(count):
+        a = np.radians(k)
+        rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0],
+                        [0.0, 0.0, 1.0]])
+        pts = points[:, :3] @ rot.T + rng.normal(scale=0.02, size=(len(points), 3))
+        out.append(np.ascontiguousarray(pts, dtype=np.float32))
+    return out
+
+
+def plain_kiss(clouds: list[np.ndarray], voxel: float = RECIPE[0],
+               max_range: float = RECIPE[1]) -> list[float]:
+    """KISS-ICP 1.3 alone as bench_kiss's RECIPE calls it (or with this voxel and range); ms
+    per cloud."""
+    from solid_ros.core.odometry.kiss import load_kiss_icp
+
+    KissICP, KISSConfig, _ = load_kiss_icp()
+    config = KISSConfig()
+    config.data.max_range = max_range
+    config.data.deskew = False
+    config.mapping.voxel_size = voxel
+    kiss = KissICP(config)
+    costs = []
+    for points in clouds:
+        pts = np.asarray(points, dtype=np.float64)
+        t0 = time.perf_counter()
+        kiss.register_frame(pts, np.zeros(len(pts)))
+        costs.append((time.perf_counter() - t0) * 1e3)
+    return costs
+
+
+def there_and_back(i: int, n: int) -> int:
+    """Index ``i`` of 0, 1, ..., n-1, n-2, ..., 1, 0, 1, ...: the sensor turns back and forth."""
+    k = i % (2 * n - 2)
+    return k if k < n else 2 * n - 2 - k
+
+
+class Probe:
+    """This process's ROS side: publishes clouds, counts poses, keeps the node's diagnostics."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        rclpy.init()
+        self.node = Node('solid_kiss_bench')
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub = self.node.create_publisher(PointCloud2, '/points', qos)
+        self.posed: set[int] = set()
+        self.diag: dict[str, str] = {}
+        self.lock = threading.Lock()
+        self.node.create_subscription(Odometry, '/solid_node/kiss/odometry', self._on_odom,
+                                      QoSProfile(depth=100,
+                                                 reliability=ReliabilityPolicy.RELIABLE))
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self.spinner.start()
+        self.stamp = 1_000 * NS
+
+    def _on_odom(self, msg: Any) -> None:
+        with self.lock:
+            self.posed.add(msg.header.stamp.sec * NS + msg.header.stamp.nanosec)
+
+    def _on_diag(self, msg: Any) -> None:
+        for s in msg.status:
+            if s.name.startswith('/solid_node'):
+                with self.lock:
+                    self.diag.update({kv.key: kv.value for kv in s.values})
+
+    def value(self, key: str) -> str:
+        with self.lock:
+            return self.diag.get(key, 'n/a')
+
+    def publish(self, clouds: list[np.ndarray], rate: float, seconds: float | None = None
+                ) -> tuple[int, int, int, int]:
+        """Publish at ``rate`` (all clouds once, or cycling for ``seconds``); wait for the node
+        to finish; return (published, posed, skipped, odometry_skipped) of this run."""
+        from solid_ros.ros.graph_msgs import cloud_msg
+
+        msgs = [cloud_msg(c, 'lidar', 0) for c in clouds]
+        count = len(clouds) if seconds is None else int(rate * seconds)
+        skipped0, odo0 = self._int('clouds_skipped'), self._int('odometry_skipped')
+        sent: list[int] = []
+        start = time.perf_counter()
+        for i in range(count):
+            while (wait := start + i / rate - time.perf_counter()) > 0:
+                time.sleep(wait)
+            self.stamp += int(NS / rate)
+            msg = msgs[there_and_back(i, len(msgs))]
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(self.stamp, NS)
+            sent.append(self.stamp)
+            self.pub.publish(msg)
+        self._drain(sent)
+        with self.lock:
+            posed = len(self.posed.intersection(sent))
+        return (count, posed, self._int('clouds_skipped') - skipped0,
+                self._int('odometry_skipped') - odo0)
+
+    def _int(self, key: str) -> int:
+        value = self.value(key)
+        return int(value) if value.isdigit() else 0
+
+    def _drain(self, sent: list[int]) -> None:
+        """Until no pose came for 3 s and nothing waits in the node's queues, plus
+        diagnostics."""
+        last, seen = time.monotonic(), -1
+        while time.monotonic() - last < 3.0 or any(
+                self.value(k) not in ('0', 'n/a') for k in ('queue_length',
+                                                            'odometry_queue_length')):
+            with self.lock:
+                n = len(self.posed.intersection(sent))
+            if n != seen:
+                last, seen = time.monotonic(), n
+            time.sleep(0.2)
+        time.sleep(1.0)  # a diagnostics message after the last cloud
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.shutdown()
+        self.spinner.join(timeout=10.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def start_node(params: Path, node_root: Path, probe: Probe,
+               kiss: tuple[float, float] = RECIPE) -> tuple[subprocess.Popen[str], Any]:
+    """The node process (KISS-ICP with ``kiss`` = (voxel, max range)); returns it and its log
+    file once it subscribes."""
+    env = dict(os.environ, PYTHONPATH=str(node_root))
+    cmd = [sys.executable, '-m', 'solid_ros.ros.node', '--ros-args', '--params-file',
+           str(params), *kiss_args(*kiss), '-p', 'qos_reliability:=reliable',
+           '-p', 'diagnostics_period_sec:=0.5']
+    log = tempfile.TemporaryFile(mode='w+')  # a pipe nobody reads would block the node
+    proc = subprocess.Popen(cmd, env=env, stderr=log, stdout=log, text=True, cwd=node_root)
+    deadline = time.monotonic() + 90
+    while probe.pub.get_subscription_count() == 0:
+        if proc.poll() is not None or time.monotonic() > deadline:
+            log.seek(0)
+            raise RuntimeError(f'solid_node did not start: {log.read()[-2000:]}')
+        time.sleep(0.1)
+    return proc, log
+
+
+def stop_node(proc: subprocess.Popen[str]) -> None:
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=10)
+
+
+def _line(name: str, run: tuple[int, int, int, int], probe: Probe) -> None:
+    published, posed, skipped, odo = run
+    print(f'  {name}: processed {posed}/{published} = {posed / published:.3f}; dropped '
+          f'{skipped} (before registration {odo}); node odometry per cloud median '
+          f"{probe.value('odometry_ms_p50')} ms, p95 {probe.value('odometry_ms_p95')} ms; "
+          f"processing p50 {probe.value('processing_ms_p50')} ms ({_load()})")
+
+
+def bench_hku1(probe: Probe, args: argparse.Namespace) -> list[np.ndarray]:
+    from hku1_data import hku1_scans
+
+    clouds = [np.asarray(c[:, :3], dtype=np.float32) for c in hku1_scans(DATA)[0][:args.clouds]]
+    sizes = [len(c) for c in clouds]
+    proc, _ = start_node(ROOT / 'config' / 'avia.yaml', args.node_root, probe)
+    try:
+        probe.publish(clouds[:5], 10.0)  # warm-up: KISS-ICP's process, imports
+        print(f'hku1 (Livox Avia), {len(clouds)} clouds of {min(sizes)}-{max(sizes)} points '
+              f'(median {int(np.median(sizes))}), 10 Hz:')
+        _line('node', probe.publish(clouds, 10.0), probe)
+    finally:
+        stop_node(proc)
+    return clouds
+
+
+def bench_kitti(probe: Probe, args: argparse.Namespace, clouds: list[np.ndarray],
+                kiss: tuple[float, float]) -> None:
+    proc, _ = start_node(ROOT / 'config' / 'hdl64.yaml', args.node_root, probe, kiss)
+    try:
+        probe.publish(clouds[:3], 2.0)  # warm-up
+        print(f'KITTI scan 313 turning, {len(clouds[0])} points per cloud, KISS-ICP voxel '
+              f'{kiss[0]:g} m, max range {kiss[1]:g} m:')
+        _line(f'10 Hz for {args.duration:.0f} s', probe.publish(clouds, 10.0, args.duration),
+              probe)
+        best = 0.0
+        for rate in [float(r) for r in args.rates.split(',') if r]:
+            run = probe.publish(clouds, rate, args.step_duration)
+            _line(f'{rate:4.1f} Hz for {args.step_duration:.0f} s', run, probe)
+            if run[1] < run[0]:
+                break
+            best = rate
+        print(f'  highest rate tried with every 120k-point cloud kept: {best:g} Hz')
+    finally:
+        stop_node(proc)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--clouds', type=int, default=150, help='hku1 clouds published')
+    parser.add_argument('--duration', type=float, default=20.0,
+                        help='seconds of KITTI clouds at 10 Hz')
+    parser.add_argument('--rates', default='0.5,1,2,3,5',
+                        help='rates (Hz) stepped up for the KITTI clouds')
+    parser.add_argument('--step-duration', type=float, default=15.0,
+                        help='seconds per stepped rate')
+    parser.add_argument('--node-root', type=Path, default=ROOT,
+                        help='checkout whose solid_node runs (default: this one)')
+    parser.add_argument('--skip-kitti', action='store_true')
+    parser.add_argument('--coarse', default='1.0,30.0',
+                        help="KITTI again with this KISS-ICP 'voxel,max_range' (what the README "
+                             "advises for 120k-point clouds); '' skips it")
+    parser.add_argument('--report', type=Path, help='write the printed figures (.md or JSON)')
+    args = parser.parse_args()
+    if not (DATA / 'hku1').is_dir():
+        print(f'no shared data at {DATA}; nothing to measure', file=sys.stderr)
+        return 1
+    os.environ['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
+    with PrintedReport(args.report, bench_meta('bench_node_kiss', vars(args))):
+        print(f'node from {args.node_root.resolve()} ({_load()})')
+        from solid_ros.formats.pointfiles import read_pcd
+
+        kitti = ([] if args.skip_kitti else
+                 turned(read_pcd(DATA / 'kitti' / 'pcd' / '000313.pcd'), 40))
+        settings = [RECIPE] + ([tuple(float(v) for v in args.coarse.split(','))]
+                               if args.coarse else [])
+        probe = Probe()
+        try:
+            hku1 = bench_hku1(probe, args)
+            for kiss in settings if kitti else []:
+                bench_kitti(probe, args, kitti, kiss)  # type: ignore[arg-type]
+        finally:
+            probe.close()
+        print(f'plain KISS-ICP 1.3 in this process, same clouds ({_load()}):')
+        print(f'  hku1: {_ms(plain_kiss(hku1))} per cloud')
+        for voxel, max_range in settings if kitti else []:
+            print(f'  KITTI 120k turning, voxel {voxel:g} m, max range {max_range:g} m: '
+                  f'{_ms(plain_kiss(kitti, voxel, max_range))} per cloud')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
