@@ -27,8 +27,8 @@ loaded machine the wall-clock ratio grows with the load, the CPU-time one far le
 ``--report FILE`` writes the figures with the date, commit and load: Markdown for
 ``doc/reports/`` (``.md``), else JSON.
 
-Usage: ``python test/bench/bench_verify.py [--scans N] [--no-cpp] [--report FILE]`` (pinned
-to one CPU core).
+Usage: ``python test/bench/bench_verify.py [--scans N] [--no-cpp] [--no-cli] [--report FILE]``
+(pinned to one CPU core).
 """
 
 from __future__ import annotations
@@ -208,6 +208,8 @@ def main() -> int:
     parser.add_argument('--scans', type=int, default=400, help='simulated scans per drive')
     parser.add_argument('--no-cpp', action='store_true',
                         help="skip the authors' C++ reference (absolute times only)")
+    parser.add_argument('--no-cli', action='store_true',
+                        help='skip the two solid_replay command runs on hku1 (about 40 s)')
     parser.add_argument('--report', type=Path,
                         help='write the figures here: Markdown (.md) or JSON')
     args = parser.parse_args()
@@ -228,8 +230,9 @@ def main() -> int:
         if hku1 is not None:
             rows.append(run('hku1 (real Avia)', hku1, 'avia.yaml'))
             rows.append(run_replay('hku1 replay (as shipped)', 'avia.yaml'))
-            cli = [run_cli('hku1 solid_replay, plots', 'avia.yaml', True),
-                   run_cli('hku1 solid_replay, no plots', 'avia.yaml', False)]
+            cli = [] if args.no_cli else [
+                run_cli('hku1 solid_replay, plots', 'avia.yaml', True),
+                run_cli('hku1 solid_replay, no plots', 'avia.yaml', False)]
         else:
             print(f'hku1 skipped: no data at {DATA}')
         rows.append(run('simulated avia_like', _sim('avia_like', args.scans), 'avia.yaml'))
