@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python test/bench/bench_fleet.py
 
-Runs the scenario of ``test/ros/test_fleet_processes.py`` (three solid_node processes in one
+Runs the scenario of ``test/ros/fleet_processes.py`` (three solid_node processes in one
 ROS domain on the simulated town, 64 beams x 512 points per ring, hdl64-like settings with
 0.75 m keyframe clouds; robot 2 joins late and leaves) with a listener on the shared topics,
 and prints:
@@ -31,10 +31,11 @@ from typing import Any
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE.parent / 'ros'), str(HERE)]
 
+from fleet_processes import PHASES as DRIVE  # noqa: E402
+from fleet_processes import Robots  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from report import PrintedReport, bench_meta  # noqa: E402
 from std_msgs.msg import UInt8MultiArray  # noqa: E402
-from test_fleet_processes import PHASES, Robots  # noqa: E402
 from test_peer_link import _check, _scan  # noqa: E402
 
 from solid_ros.formats.peers import CloudReply, CloudRequest, DescriptorMessage, decode  # noqa: E402
@@ -111,6 +112,10 @@ def main() -> int:
     args = p.parse_args()
     with PrintedReport(args.report, bench_meta('bench_fleet', vars(args))):
         return _run()
+
+
+# The drive, with a fourth robot of other descriptor settings (refused) in its first phase.
+PHASES = [{**DRIVE[0], 3: list(range(0, 5))}, *DRIVE[1:]]
 
 
 def _run() -> int:

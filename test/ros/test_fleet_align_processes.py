@@ -1,11 +1,15 @@
-"""Three solid_node processes with the back end and a fleet key place each other's maps
-(issue: a fleet in one map). The drive of ``test_fleet_processes``: robots 0 and 1 map
-different streets, robot 2 joins late and drives streets of both, then leaves; robots 0 and 1
-then drive each other's streets. Each robot's odometry is the simulator's reference pose in
+"""Three solid_node processes with the back end and a fleet key find each other's places and
+place each other's maps (issues: multi-robot, a fleet in one map). The drive of
+:mod:`fleet_processes`: robots 0 and 1 map different streets, robot 2 joins late and drives
+streets of both, then leaves; robots 0 and 1 then drive each other's streets; garbage comes on
+the shared descriptor topic.
+Each robot's odometry is the simulator's reference pose in
 a random rigid frame of its own (drift is what the replay tests, test/tools/test_fleet_map.py,
 add; here the frames on /tf can be checked against the exact truth).
 
-Checked: every robot ends aligned with every other (robot 2 with both before it leaves),
+Checked: every inter-robot loop against the simulator's relative pose (1 m, 3 degrees): none
+false, each robot finds some; the garbage is refused;
+every robot ends aligned with every other (robot 2 with both before it leaves),
 from /diagnostics; the peer frames on /tf (each robot names its own ``r<i>/map``) place the
 peer's map within a few metres and degrees of the truth (drift included); robots 0 and 1 keep
 robot 2's alignment after it left; the log line says so once per peer; descriptors (with
@@ -23,18 +27,19 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
 
+from fleet_processes import PARAMS, PHASES, Robots  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy_msgs import make_cloud, make_odometry  # noqa: E402
 from std_msgs.msg import UInt8MultiArray  # noqa: E402
-from test_fleet_processes import PARAMS, PHASES, Robots  # noqa: E402
-from test_peer_link import _scan  # noqa: E402
+from test_peer_link import _check, _scan  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from solid_ros.core.geometry import rpy_matrix, vector_to_matrix  # noqa: E402
 
 pytestmark = pytest.mark.slow
-# The drive's phases without robot 3 (the other descriptor settings: not run here).
-DRIVE = [{r: s for r, s in phase.items() if r != 3} for phase in PHASES]
+# No robot of other descriptor settings here: its refused descriptors would count in the
+# traffic measured below (test_peer_link refuses such a robot in-process).
+DRIVE = PHASES
 
 BACKEND = PARAMS.replace('use_odom: false', 'use_odom: true') + """    backend: true
     backend_segment_jump_m: 1000.0
@@ -53,7 +58,7 @@ def _frame(robot: int) -> np.ndarray:
 
 
 class AlignedRobots(Robots):
-    """The fleet of ``test_fleet_processes`` with odometry, the back end and a fleet key."""
+    """The fleet of :mod:`fleet_processes` with odometry, the back end and a fleet key."""
 
     def __init__(self, tmp: Path) -> None:
         super().__init__(tmp)
@@ -124,6 +129,9 @@ def test_three_robots_align_each_other_a_late_joiner_and_a_leaver(tmp_path: Path
     try:
         fleet.start(0)
         fleet.start(1)
+        junk = UInt8MultiArray()
+        junk.data = b'SLD1\x01not a descriptor'
+        fleet.garbage.publish(junk)
         fleet.drive(DRIVE[0])
         assert fleet.aligned(0) == set() and fleet.aligned(1) == set()  # no shared street yet
         fleet.start(2)  # late joiner
@@ -138,6 +146,15 @@ def test_three_robots_align_each_other_a_late_joiner_and_a_leaver(tmp_path: Path
         fleet.drive(DRIVE[2])
         fleet.wait_for(lambda: fleet.aligned(0) == {1, 2} and fleet.aligned(1) == {0, 2},
                        'robots 0 and 1 aligned with each other, and still with robot 2', 30.0)
+        peers_of = {r: {p: fleet.sent[p] for p in (0, 1, 2) if p != r} for r in (0, 1, 2)}
+        found = {r: _check(fleet.loops[r], fleet.sent[r], peers_of[r]) for r in (0, 1, 2)}
+        print('inter-robot loops (correct, false):', found)
+        assert all(bad == 0 for _, bad in found.values()), found
+        assert all(good >= 5 for good, _ in found.values()), found
+        for r in (0, 1):
+            s = fleet.stats(r)
+            assert int(s.get('peer_malformed', 0)) + int(s.get('peer_unauthenticated', 0)) >= 1, s
+            assert int(s.get('peer_clouds_received', 0)) >= 1, s
         errors = {(r, p): _check_frame(fleet, r, p) for r, p in
                   ((0, 1), (1, 0), (0, 2), (1, 2), (2, 0), (2, 1))}
         print('peer frames on /tf, error (m, deg):', errors, 'robot 2 before it left:', before)

@@ -1,11 +1,11 @@
-"""Three solid_node processes in one ROS domain find each other's places (issue: multi-robot).
+"""Three solid_node processes in one ROS domain, and the client that feeds them: the drive and
+the harness of ``test_fleet_align_processes`` (issue: multi-robot; one run of the processes
+checks the loops and the alignment, since each run takes a minute of CI).
 
 Each robot drives its own stretches of the simulated town (64-beam, 360 degrees), at its own
 times: robots 0 and 1 map different streets; robot 2 joins late and drives streets of both,
 one of them in the opposite direction; then robot 2 leaves and robots 0 and 1 drive streets
-the others mapped. A fourth process with other descriptor settings and a stream of garbage
-on the shared topics run alongside. Every inter-robot loop is checked against the
-simulator's relative pose (1 m, 3 degrees); none may be false and each robot must find some.
+the others mapped. The client can also send garbage on the shared descriptor topic.
 """
 
 from __future__ import annotations
@@ -20,26 +20,23 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from polling import wait_until
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy_msgs import make_cloud
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Float64MultiArray, UInt8MultiArray
+from test_peer_link import _scan
 
-rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installed')
-
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from polling import wait_until  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from rclpy_msgs import make_cloud  # noqa: E402
-from sensor_msgs.msg import PointCloud2  # noqa: E402
-from std_msgs.msg import Float64MultiArray, UInt8MultiArray  # noqa: E402
-from test_peer_link import _check, _scan  # noqa: E402
-
-from solid_ros.formats.candidates import decode_candidates  # noqa: E402
+from solid_ros.formats.candidates import decode_candidates
 
 # Scans of the simulated drive each robot covers, phase by phase (see the module docstring).
 PHASES: list[dict[int, list[int]]] = [
-    {0: [*range(0, 101), *range(317, 364)], 1: list(range(135, 241)), 3: list(range(0, 5))},
+    {0: [*range(0, 101), *range(317, 364)], 1: list(range(135, 241))},
     {2: [*range(268, 316), *range(477, 531), *range(797, 820)]},
     {0: list(range(759, 794)), 1: list(range(268, 301))},
 ]
@@ -150,40 +147,3 @@ class Robots:
         self.executor.shutdown()
         self.client.destroy_node()
         rclpy.try_shutdown(context=self.ctx)
-
-
-def test_three_robots_publish_correct_inter_robot_loops(tmp_path: Path) -> None:
-    for i in {i for ph in PHASES for s in ph.values() for i in s}:
-        _scan(i)  # simulate first, so the feed keeps its pace
-    fleet = Robots(tmp_path)
-    try:
-        fleet.start(0)
-        fleet.start(1)
-        fleet.start(3, '-p', 'num_angle:=90')  # other descriptor settings
-        junk = UInt8MultiArray()
-        junk.data = b'SLD1\x01not a descriptor'
-        fleet.garbage.publish(junk)
-        fleet.drive(PHASES[0])
-        fleet.start(2)  # late joiner: catches up on what 0 and 1 stored
-        fleet.wait_for(lambda: int(fleet.stats(2).get('peer_descriptors_stored', 0))
-                       >= len(fleet.sent[0]) + len(fleet.sent[1]), 'catch-up of robot 2')
-        fleet.drive(PHASES[1])
-        fleet.stop(2)  # robot 2 leaves mid-run
-        fleet.drive(PHASES[2])
-        fleet.spin(1.0)
-        peers_of = {r: {p: fleet.sent[p] for p in (0, 1, 2) if p != r} for r in (0, 1, 2)}
-        found = {}
-        for r in (0, 1, 2):
-            found[r] = _check(fleet.loops[r], fleet.sent[r], peers_of[r])
-        assert all(bad == 0 for _, bad in found.values()), found
-        assert all(good >= 5 for good, _ in found.values()), found
-        print('inter-robot loops (correct, false):', found)
-        for r in (0, 1):
-            s = fleet.stats(r)
-            assert int(s.get('peer_descriptors_refused', 0)) >= 1, s  # robot 3's settings
-            assert int(s.get('peer_malformed', 0)) >= 1, s  # the garbage
-            assert int(s.get('peer_clouds_received', 0)) >= 1, s
-        print('robot 1 peer counters:', {k: v for k, v in fleet.stats(1).items()
-                                         if k.startswith('peer_')})
-    finally:
-        fleet.close()
