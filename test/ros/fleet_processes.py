@@ -124,6 +124,11 @@ class Robots:
     def stats(self, robot: int) -> dict[str, str]:
         return self.diag.get(f'/r{robot}/solid_node', {})
 
+    settle_sec = 1.5  # after a phase: the last loop messages
+
+    def before_cloud(self, robot: int, pose: Any, stamp: int) -> None:
+        """Called before each cloud goes out (nothing here; e.g. its odometry)."""
+
     def drive(self, phase: dict[int, list[int]], rate_hz: float = 10.0) -> None:
         """Publish the robots' scans interleaved, then wait until each node is through."""
         queues = {r: list(s) for r, s in phase.items()}
@@ -131,7 +136,8 @@ class Robots:
             for r, q in queues.items():
                 if q:
                     i = q.pop(0)
-                    pts, _, stamp = _scan(i)
+                    pts, pose, stamp = _scan(i)
+                    self.before_cloud(r, pose, stamp)
                     self.pubs[r].publish(make_cloud(pts, stamp))
                     self.sent[r].append(i)
             self.spin(1.0 / rate_hz)
@@ -139,7 +145,7 @@ class Robots:
             self.wait_for(lambda r=r: self.stats(r).get('clouds_processed') == str(
                 len(self.sent[r])) and self.stats(r).get('verify_queue_length') == '0'
                 and self.stats(r).get('queue_length') == '0', f'robot {r} done')
-        self.spin(1.5)  # the last loop messages
+        self.spin(self.settle_sec)
 
     def close(self) -> None:
         for r in list(self.procs):

@@ -29,7 +29,7 @@ rclpy = pytest.importorskip('rclpy', reason='rclpy (ROS 2 Jazzy) is not installe
 
 from fleet_processes import PARAMS, PHASES, Robots  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
-from rclpy_msgs import make_cloud, make_odometry  # noqa: E402
+from rclpy_msgs import make_odometry  # noqa: E402
 from std_msgs.msg import UInt8MultiArray  # noqa: E402
 from test_peer_link import _check, _scan  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
@@ -87,28 +87,21 @@ class AlignedRobots(Robots):
         self.odom[robot] = self.client.create_publisher(Odometry, f'/r{robot}/odom', self.qos)
         super().start(robot, '-p', f'map_frame:=r{robot}/map', *extra)
 
-    def drive(self, phase: dict[int, list[int]], rate_hz: float = 10.0) -> None:
+    settle_sec = 2.5  # the alignment tick and the last diagnostics
+
+    def before_cloud(self, robot: int, pose: Any, stamp: int) -> None:
         """Each cloud after its odometry (the reference pose in the robot's own frame)."""
-        queues = {r: list(s) for r, s in phase.items()}
-        while any(queues.values()):
-            for r, q in queues.items():
-                if q:
-                    i = q.pop(0)
-                    pts, pose, stamp = _scan(i)
-                    self.odom[r].publish(make_odometry(_frame(r) @ pose, stamp))
-                    self.spin(0.005)
-                    self.pubs[r].publish(make_cloud(pts, stamp))
-                    self.sent[r].append(i)
-            self.spin(1.0 / rate_hz)
-        for r in phase:
-            self.wait_for(lambda r=r: self.stats(r).get('clouds_processed') == str(
-                len(self.sent[r])) and self.stats(r).get('verify_queue_length') == '0'
-                and self.stats(r).get('queue_length') == '0', f'robot {r} done')
-        self.spin(2.5)  # the alignment tick and the last diagnostics
+        self.odom[robot].publish(make_odometry(_frame(robot) @ pose, stamp))
+        self.spin(0.005)
 
     def aligned(self, robot: int) -> set[int]:
         value = self.stats(robot).get('fleet_aligned', 'none')
         return set() if value == 'none' else {int(p) for p in value.split(',')}
+
+
+def _refused(stats: dict[str, str]) -> int:
+    """Peer messages a robot refused as garbage (without a valid fleet key tag, or malformed)."""
+    return int(stats.get('peer_malformed', 0)) + int(stats.get('peer_unauthenticated', 0))
 
 
 def _check_frame(fleet: AlignedRobots, robot: int, peer: int) -> tuple[float, float]:
@@ -129,10 +122,12 @@ def test_three_robots_align_each_other_a_late_joiner_and_a_leaver(tmp_path: Path
     try:
         fleet.start(0)
         fleet.start(1)
-        junk = UInt8MultiArray()
+        fleet.drive(DRIVE[0])
+        junk = UInt8MultiArray()  # once both are matched on the shared topic (they drove)
         junk.data = b'SLD1\x01not a descriptor'
         fleet.garbage.publish(junk)
-        fleet.drive(DRIVE[0])
+        fleet.wait_for(lambda: all(_refused(fleet.stats(r)) >= 1 for r in (0, 1)),
+                       'garbage refused by robots 0 and 1', 30.0)
         assert fleet.aligned(0) == set() and fleet.aligned(1) == set()  # no shared street yet
         fleet.start(2)  # late joiner
         fleet.wait_for(lambda: int(fleet.stats(2).get('peer_descriptors_stored', 0))
@@ -153,7 +148,7 @@ def test_three_robots_align_each_other_a_late_joiner_and_a_leaver(tmp_path: Path
         assert all(good >= 5 for good, _ in found.values()), found
         for r in (0, 1):
             s = fleet.stats(r)
-            assert int(s.get('peer_malformed', 0)) + int(s.get('peer_unauthenticated', 0)) >= 1, s
+            assert _refused(s) >= 1, s
             assert int(s.get('peer_clouds_received', 0)) >= 1, s
         errors = {(r, p): _check_frame(fleet, r, p) for r, p in
                   ((0, 1), (1, 0), (0, 2), (1, 2), (2, 0), (2, 1))}
