@@ -12,7 +12,9 @@ the back end's map -> odom correction and RViz work with the node alone; never o
 frame to itself (clouds whose frame is ``odom_frame``: no transform, one WARN, see
 :mod:`solid_ros.ros.frames`). A reset of the
 source (a cloud it cannot register) is logged with its reason; the back end starts a new
-graph segment on it.
+graph segment on it. So is a restart of KISS-ICP's process after it ended (killed, crashed):
+one ERROR when the end is noticed, then the reset's WARN; the clouds it cannot register until
+then raise :class:`~solid_ros.core.errors.OdometryUnavailable` (the stage skips them).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 
 from solid_ros.core.config import NodeConfig
+from solid_ros.core.errors import OdometryUnavailable
 from solid_ros.core.odometry.kiss_process import KissProcess
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.stamps import split_stamp
@@ -48,6 +51,7 @@ class KissIO:
     def __init__(self, node: Node, cfg: NodeConfig) -> None:
         self._source = KissProcess(cfg)
         self._log = node.get_logger()
+        self._ended = 0  # ends of KISS-ICP's process logged
         self.frame = cfg.odom_frame or DEFAULT_ODOM_FRAME
         self._sensor_frame = cfg.sensor_frame
         self._frames = SelfTransformGuard(self._log.warning, odom_sensor_advice)
@@ -68,8 +72,18 @@ class KissIO:
     def pose_for(self, stamp_ns: int, points: npt.NDArray[np.floating[Any]], cloud_frame: str,
                  point_times: npt.NDArray[np.float64] | None = None) -> OdomSample | None:
         """Register the cloud (with its per-point times, if any); publish and return its pose
-        (odometry thread)."""
-        sample = self._source.pose_for(stamp_ns, points, point_times)
+        (odometry thread).
+
+        Raises:
+            OdometryUnavailable: KISS-ICP's process ended and is not restarted yet.
+        """
+        try:
+            sample = self._source.pose_for(stamp_ns, points, point_times)
+        except OdometryUnavailable as err:
+            if self._source.ended != self._ended:  # once per end, not per skipped cloud
+                self._ended = self._source.ended
+                self._log.error(f'{err} ({self._source.restarts} restarts so far)')
+            raise
         if sample is None:
             return None
         if sample.reason is not None:
@@ -93,7 +107,8 @@ class KissIO:
         """/diagnostics values of the odometry."""
         out: dict[str, object] = {'kiss_registered': self._source.registered,
                                   'kiss_deskewed': self._source.deskewed,
-                                  'kiss_resets': self.resets}
+                                  'kiss_resets': self.resets,
+                                  'kiss_restarts': self._source.restarts}
         for kind, count in sorted(dict(self._source.reset_counts).items()):
             out[f'kiss_reset_{kind}'] = count
         for kind, count in sorted(dict(self._source.input_counts).items()):

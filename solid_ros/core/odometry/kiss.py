@@ -79,6 +79,9 @@ class KissOdometry:
 
     Args:
         config: node settings (``kiss_*``); defaults when None.
+        segment: the first segment's number (a source that continues another one, as
+            :class:`~solid_ros.core.odometry.kiss_process.KissProcess` after a restart).
+        pose: where the first segment starts in the odometry frame (identity when None).
 
     Raises:
         SolidError: kiss-icp is not installed.
@@ -104,17 +107,19 @@ class KissOdometry:
     name = 'kiss_icp'
     takes_point_times = True  # pose_for deskews with per-point times
 
-    def __init__(self, config: NodeConfig | None = None) -> None:
+    def __init__(self, config: NodeConfig | None = None, *, segment: int = 0,
+                 pose: FloatArray | None = None) -> None:
         self.config = config if config is not None else NodeConfig()
         self._KissICP, self._KISSConfig, self._voxel_down_sample = load_kiss_icp()
-        self.segment = 0
+        self.segment = int(segment)
         self.resets = 0
         self.registered = 0
         self.deskewed = 0
         self.reset_counts: Counter[str] = Counter()
         self.input_counts: Counter[str] = Counter()
-        self._origin: FloatArray = np.eye(4)  # odom <- this segment's KISS-ICP frame
-        self._pose: FloatArray = np.eye(4)  # last accepted pose, odom frame
+        start = np.eye(4) if pose is None else np.array(pose, dtype=np.float64)
+        self._origin: FloatArray = start.copy()  # odom <- this segment's KISS-ICP frame
+        self._pose: FloatArray = start  # last accepted pose, odom frame
         self._kiss: Any = None  # None: the segment has no cloud yet
         self._prev: Frame | None = None
         self._guard: OverlapGuard | None = None
