@@ -19,6 +19,8 @@ then raise :class:`~solid_ros.core.errors.OdometryUnavailable` (the stage skips 
 
 from __future__ import annotations
 
+import threading
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -52,6 +54,10 @@ class KissIO:
         self._source = KissProcess(cfg)
         self._log = node.get_logger()
         self._ended = 0  # ends of KISS-ICP's process logged
+        # Newest round trips split (to the child, in KISS-ICP there, back), ms: what the
+        # hand-over to the process adds to the odometry stage's time.
+        self._split: deque[tuple[float, float, float]] = deque(maxlen=1000)
+        self._split_lock = threading.Lock()  # appended on the odometry thread, read by timer
         self.frame = cfg.odom_frame or DEFAULT_ODOM_FRAME
         self._sensor_frame = cfg.sensor_frame
         self._frames = SelfTransformGuard(self._log.warning, odom_sensor_advice)
@@ -86,6 +92,9 @@ class KissIO:
             raise
         if sample is None:
             return None
+        if self._source.last_ms is not None:
+            with self._split_lock:
+                self._split.append(self._source.last_ms)
         if sample.reason is not None:
             self._log.warning(f'KISS-ICP odometry reset: {sample.reason} (segment '
                               f'{sample.segment}, {self.resets} resets so far)')
@@ -118,4 +127,16 @@ class KissIO:
         typical = self._source.typical_overlap
         if typical is not None:
             out['kiss_typical_overlap'] = round(typical, 3)
+        return out | self._split_values()
+
+    def _split_values(self) -> dict[str, object]:
+        """p50/p95 of the time in KISS-ICP's process (``kiss_icp_ms``: KissOdometry, checks
+        included) and of the hand-over to it and back (``kiss_handover_ms``), 'nan' before a
+        cloud."""
+        with self._split_lock:
+            split = np.asarray(self._split, dtype=np.float64).reshape(-1, 3)
+        out: dict[str, object] = {}
+        for name, ms in (('kiss_icp', split[:, 1]), ('kiss_handover', split[:, 0] + split[:, 2])):
+            p50, p95 = np.percentile(ms, [50, 95]) if len(ms) else (np.nan, np.nan)
+            out[f'{name}_ms_p50'], out[f'{name}_ms_p95'] = f'{p50:.2f}', f'{p95:.2f}'
         return out

@@ -75,6 +75,9 @@ def _run(harness: Callable[..., Harness], field: str | None,
     assert pid is not None and pid != os.getpid()
     assert status['odometry_queue_length'] == '0' and status['odometry_skipped'] == '0'
     assert status['odometry_ms_p50'] != 'nan'
+    # The stage's time holds the child's (its clock splits the round trip) and the hand-over.
+    assert 0 < float(status['kiss_icp_ms_p50']) <= float(status['odometry_ms_p50'])
+    assert 0 < float(status['kiss_handover_ms_p50']) <= float(status['odometry_ms_p50'])
     assert status['clouds_without_odom'] == '0'
     if then is not None:
         then(h, odometry, drive)

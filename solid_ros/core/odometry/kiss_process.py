@@ -24,12 +24,15 @@ check's history of the run (its bar is calibrated again).
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
+import struct
 import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import replace
 from multiprocessing.connection import Connection
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 import numpy as np
@@ -47,6 +50,28 @@ RESTART_SEC = 5.0  # least time between two restarts: a child that dies at once 
 # in a tight loop (its imports alone take a core for seconds)
 _COUNTS = ('reset_counts', 'input_counts', 'recovered')
 _TOTALS = ('registered', 'resets', 'deskewed')
+
+
+def _send_once(conn: Connection, item: Any) -> None:
+    """``conn.send(item)`` in one system call: the same bytes (Connection's length header and
+    pickle), but ``Connection.send`` writes a pickle over 16 kB (a cloud) apart from its header,
+    and the child waits for both. Each write gives up the GIL, and getting it back from a busy
+    thread (the describe thread) takes up to the switch interval, 5 ms: with a spinning thread
+    beside, the median time to the child went from 9.7-9.9 to 0.7-1.7 ms per hku1 cloud
+    (test/bench/bench_kiss_overhead.py --busy, two runs each at load 6-9); in the node on hku1
+    the hand-over p50 went from 4.0-4.9 to 3.2-3.7 ms (bench_node_kiss, load 8-9)."""
+    data = ForkingPickler.dumps(item)
+    if len(data) > 0x7FFFFFFF:  # Connection's other header; never a cloud
+        conn.send_bytes(data)
+        return
+    fd = conn.fileno()
+    sent = os.writev(fd, [struct.pack('!i', len(data)), data])
+    if sent < 4 + len(data):  # a short write (a signal): the rest as it comes
+        rest = memoryview(data)[max(sent - 4, 0):]
+        if sent < 4:
+            os.write(fd, struct.pack('!i', len(data))[sent:])
+        while len(rest):
+            rest = rest[os.write(fd, rest):]
 
 
 def _state(kiss: KissOdometry) -> dict[str, Any]:
@@ -69,12 +94,13 @@ def _serve(conn: Connection, config: NodeConfig, segment: int,
             if item is None:
                 return
             stamp_ns, points, times = item
+            began = time.monotonic()  # system-wide: the parent splits its round trip with it
             try:
                 sample = kiss.pose_for(stamp_ns, points, point_times=times)
             except Exception as err:  # reported to the caller, the child goes on
                 conn.send(('error', f'{type(err).__name__}: {err}', _state(kiss)))
                 continue
-            conn.send(('pose', sample, _state(kiss)))
+            conn.send(('pose', sample, _state(kiss) | {'span': (began, time.monotonic())}))
     except (EOFError, OSError, KeyboardInterrupt):
         return
 
@@ -98,6 +124,8 @@ class KissProcess:
         restarts: children started after one ended.
         ended: children that ended while in use (noticed by :meth:`pose_for`).
         last_end: why the last one ended (exit code), or None.
+        last_ms: the last cloud's round trip split in three, ms: to the child (copy, pipe,
+            the child waking), in KissOdometry.pose_for there, and back (None before one).
     """
 
     name = 'kiss_icp'
@@ -114,6 +142,7 @@ class KissProcess:
         self.typical_overlap: float | None = None
         self.restarts = self.ended = 0
         self.last_end: str | None = None
+        self.last_ms: tuple[float, float, float] | None = None
         self._restart_sec, self._clock = float(restart_sec), clock
         self._restarted_at: float | None = None
         self._before: dict[str, Any] = {}  # the counters of the children that ended
@@ -164,14 +193,18 @@ class KissProcess:
         assert self._conn is not None
         xyz = np.ascontiguousarray(np.asarray(points)[:, :3])
         times = None if point_times is None else np.asarray(point_times, dtype=np.float64)
+        sent = time.monotonic()
         try:
-            self._conn.send((int(stamp_ns), xyz, times))
-            kind, value, _ = self._answer(None)
+            _send_once(self._conn, (int(stamp_ns), xyz, times))
+            kind, value, state = self._answer(None)
         except (EOFError, OSError) as err:
             raise OdometryUnavailable(self._lost(err) + ': this cloud is skipped, the next '
                                       'one restarts it') from err
         if kind == 'error':
             raise SolidError(f'KISS-ICP failed: {value}')
+        began, ended = state['span']
+        self.last_ms = ((began - sent) * 1e3, (ended - began) * 1e3,
+                        (time.monotonic() - ended) * 1e3)
         return self._returned(value)
 
     def _returned(self, sample: OdomSample | None) -> OdomSample | None:

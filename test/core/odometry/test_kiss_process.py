@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -41,8 +42,13 @@ def test_the_child_gives_the_poses_and_counters_of_kiss_odometry_here() -> None:
         assert child.pid is not None and child.pid != os.getpid()
         for i, (cloud, t) in enumerate(zip(clouds, times)):
             want = here.pose_for((i + 1) * SEC, cloud, point_times=t)
+            t0 = time.monotonic()
             got = child.pose_for((i + 1) * SEC, cloud, t)
+            took_ms = (time.monotonic() - t0) * 1e3
             assert want is not None and got is not None
+            # The round trip split with the child's clock: three parts, within it.
+            assert child.last_ms is not None and min(child.last_ms) >= 0.0
+            assert child.last_ms[1] > 0.0 and sum(child.last_ms) <= took_ms
             assert got.stamp_ns == want.stamp_ns and got.segment == want.segment
             # TBB's parallel sums may differ in the last bits between two runs.
             np.testing.assert_allclose(got.pose, want.pose, atol=1e-6)
