@@ -20,9 +20,9 @@ of which before registration ``odometry_skipped``), the node's per-cloud odometr
 (``odometry_ms_p50/p95`` on /diagnostics: registration including the hand-over to KISS-ICP's
 process; of it, ``kiss_icp_ms_p50`` in KISS-ICP's process and ``kiss_handover_ms_p50`` the
 hand-over there and back) and, after the node has stopped, plain KISS-ICP 1.3's per-cloud
-cost on the same clouds in this process (``register_frame``, same settings). The KITTI part runs again with
-``--coarse`` (KISS-ICP voxel 1 m, max range 30 m). ``--node-root`` runs the node of
-another checkout (e.g. main before the odometry stage; it reports no odometry_ms).
+cost on the same clouds in this process (``register_frame``, same settings). The KITTI part
+runs again with ``--coarse`` (KISS-ICP voxel 1 m, max range 30 m). ``--node-root`` runs the
+node of another checkout (e.g. main before the odometry stage; it reports no odometry_ms).
 Timings on a shared 2-core machine are noisy: the load is printed with each part.
 """
 
