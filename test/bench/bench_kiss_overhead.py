@@ -1,6 +1,6 @@
 """Where the node's KISS-ICP odometry spends its time beyond plain KISS-ICP, one cloud at a time.
 
-Run: ``nice python test/bench/bench_kiss_overhead.py [--clouds 150] [--busy]
+Run: ``nice python test/bench/bench_kiss_overhead.py [--clouds 150]
 [--report doc/reports/bench_kiss_overhead.md]``.
 
 bench_node_kiss measured the node's odometry at a median 91 ms per hku1 cloud against 64 ms
@@ -18,8 +18,9 @@ the same clouds (hku1, the first ``--clouds``, bench_kiss's RECIPE: voxel 0.5 m,
    trip split with the child's own clock (``last_ms``): to the child (pickling, pipe,
    waking), in ``KissOdometry.pose_for`` there, and back.
 
-With ``--busy`` a pure-Python thread spins in this process throughout (the node's describe
-thread holds a core the same way). The poses of 2 and 3 are checked against each other.
+It runs twice: alone, then with a pure-Python thread spinning in this process (the node's
+describe and verify threads hold the GIL and a core the same way: KISS-ICP in this process
+stalls it, the child has to share the 2 cores with it). The poses of 2 and 3 are compared.
 """
 
 from __future__ import annotations
@@ -120,7 +121,6 @@ def run(clouds: list[np.ndarray]) -> dict[str, list[float]]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--clouds', type=int, default=150, help='hku1 clouds')
-    parser.add_argument('--busy', action='store_true', help='a spinning thread beside')
     parser.add_argument('--report', type=Path, help='write the printed figures (.md or JSON)')
     args = parser.parse_args()
     if not (DATA / 'hku1' / 'bag').is_dir():
@@ -130,24 +130,32 @@ def main() -> int:
 
     clouds = [np.asarray(c[:, :3], dtype=np.float32)
               for c in hku1_scans(DATA)[0][:args.clouds]]
-    stop = threading.Event()
-    busy = threading.Thread(target=_spin, args=(stop,), daemon=True)
     with PrintedReport(args.report, bench_meta('bench_kiss_overhead', vars(args))):
-        print(f'hku1, {len(clouds)} clouds, voxel 0.5 m, max range 50 m, no deskew'
-              f'{", a spinning thread beside" if args.busy else ""} ({_load()} before)')
-        if args.busy:
-            busy.start()
-        try:
-            out = run(clouds)
-        finally:
-            stop.set()
-        for name, values in out.items():
-            if name.startswith('worst'):
-                print(f'  {name}: {values[0]:.2e}')
-            else:
-                print(f'  {name:22s} {_ms(values)}')
-        print(f'  ({_load()} after)')
+        for busy in (False, True):
+            print(f'hku1, {len(clouds)} clouds, voxel 0.5 m, max range 50 m, no deskew, '
+                  f'{"a spinning thread beside" if busy else "alone"} ({_load()} before)')
+            _print(_run_beside(clouds, busy))
+            print(f'  ({_load()} after)')
     return 0
+
+
+def _run_beside(clouds: list[np.ndarray], busy: bool) -> dict[str, list[float]]:
+    """:func:`run`, with a spinning thread beside when ``busy``."""
+    stop = threading.Event()
+    if busy:
+        threading.Thread(target=_spin, args=(stop,), daemon=True).start()
+    try:
+        return run(clouds)
+    finally:
+        stop.set()
+
+
+def _print(out: dict[str, list[float]]) -> None:
+    for name, values in out.items():
+        if name.startswith('worst'):
+            print(f'  {name}: {values[0]:.2e}')
+        else:
+            print(f'  {name:22s} {_ms(values)}')
 
 
 if __name__ == '__main__':
