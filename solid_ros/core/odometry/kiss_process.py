@@ -150,6 +150,7 @@ class KissProcess:
         self._pending: str | None = None  # the restart's reason for the next sample
         self._conn: Connection | None = None
         self._child: Any = None
+        self._closed = False  # close() was called: no more restarts
         self._start(0)
 
     def _start(self, segment: int) -> None:
@@ -163,7 +164,7 @@ class KissProcess:
         child.close()
         self._conn = conn
         try:
-            self._answer(_STARTUP_SEC)
+            self._answer(conn, _STARTUP_SEC)
         except (EOFError, OSError) as err:
             code = self._child.exitcode
             self._stop_child(0.0)
@@ -186,18 +187,23 @@ class KissProcess:
         """
         if points is None:
             return None
+        if self._closed:
+            raise OdometryUnavailable('the KISS-ICP process was closed')
         if self._conn is not None and not self._child.is_alive():
             self._lost(None)  # ended between two clouds: this one goes to the next child
         if self._conn is None:
             self._restart()
-        assert self._conn is not None
+        conn = self._conn  # close() on another thread may clear self._conn meanwhile
+        assert conn is not None
         xyz = np.ascontiguousarray(np.asarray(points)[:, :3])
         times = None if point_times is None else np.asarray(point_times, dtype=np.float64)
         sent = time.monotonic()
         try:
-            _send_once(self._conn, (int(stamp_ns), xyz, times))
-            kind, value, state = self._answer(None)
+            _send_once(conn, (int(stamp_ns), xyz, times))
+            kind, value, state = self._answer(conn, None)
         except (EOFError, OSError) as err:
+            if self._closed:  # its end was asked for, not a crash
+                raise OdometryUnavailable('the KISS-ICP process was closed') from err
             raise OdometryUnavailable(self._lost(err) + ': this cloud is skipped, the next '
                                       'one restarts it') from err
         if kind == 'error':
@@ -253,11 +259,11 @@ class KissProcess:
                 f'restarted ({self.last_end})')
         self._pending = note if self._pending is None else f'{self._pending}; {note}'
 
-    def _answer(self, timeout: float | None) -> tuple[str, Any, dict[str, Any]]:
-        assert self._conn is not None
-        if timeout is not None and not self._conn.poll(timeout):
+    def _answer(self, conn: Connection,
+                timeout: float | None) -> tuple[str, Any, dict[str, Any]]:
+        if timeout is not None and not conn.poll(timeout):
             raise OSError(f'no answer in {timeout:g} s')
-        kind, value, state = self._conn.recv()
+        kind, value, state = conn.recv()
         self._mirror(state)
         return kind, value, state
 
@@ -286,5 +292,7 @@ class KissProcess:
         self._conn = None
 
     def close(self, timeout: float = 5.0) -> None:
-        """End the child (after the cloud it registers), killing it after ``timeout``."""
+        """End the child (after the cloud it registers), killing it after ``timeout``; no
+        restart after this."""
+        self._closed = True
         self._stop_child(timeout)

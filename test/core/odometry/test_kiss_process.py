@@ -93,6 +93,9 @@ def test_a_killed_child_is_restarted_in_a_new_segment_at_the_last_pose() -> None
     finally:
         child.close()
     assert child.pid is None
+    with pytest.raises(OdometryUnavailable, match='closed'):  # and no child starts
+        child.pose_for(10 * SEC, clouds[5])
+    assert child.pid is None and child.restarts == 2
 
 
 def _dies_again_within_restart_sec(child: KissProcess, cloud: np.ndarray,
