@@ -58,8 +58,12 @@ def _send_once(conn: Connection, item: Any) -> None:
     and the child waits for both. Each write gives up the GIL, and getting it back from a busy
     thread (the describe thread) takes up to the switch interval, 5 ms: with a spinning thread
     beside, the median time to the child went from 9.7-9.9 to 0.7-1.7 ms per hku1 cloud
-    (test/bench/bench_kiss_overhead.py --busy, two runs each at load 6-9); in the node on hku1
-    the hand-over p50 went from 4.0-4.9 to 3.2-3.7 ms (bench_node_kiss, load 8-9)."""
+    (test/bench/bench_kiss_overhead.py, two runs each at load 6-9); in the node on hku1 the
+    hand-over p50 went from 4.0-4.9 to 3.2-3.7 ms (bench_node_kiss, load 8-9).
+
+    Raises:
+        BrokenPipeError: the child had ended (its end of the pipe was closed).
+    """
     data = ForkingPickler.dumps(item)
     if len(data) > 0x7FFFFFFF:  # Connection's other header; never a cloud
         conn.send_bytes(data)
@@ -189,17 +193,11 @@ class KissProcess:
             return None
         if self._closed:
             raise OdometryUnavailable('the KISS-ICP process was closed')
-        if self._conn is not None and not self._child.is_alive():
-            self._lost(None)  # ended between two clouds: this one goes to the next child
-        if self._conn is None:
-            self._restart()
-        conn = self._conn  # close() on another thread may clear self._conn meanwhile
-        assert conn is not None
         xyz = np.ascontiguousarray(np.asarray(points)[:, :3])
         times = None if point_times is None else np.asarray(point_times, dtype=np.float64)
-        sent = time.monotonic()
+        item = (int(stamp_ns), xyz, times)
+        conn, sent = self._send(item)
         try:
-            _send_once(conn, (int(stamp_ns), xyz, times))
             kind, value, state = self._answer(conn, None)
         except (EOFError, OSError) as err:
             if self._closed:  # its end was asked for, not a crash
@@ -212,6 +210,32 @@ class KissProcess:
         self.last_ms = ((began - sent) * 1e3, (ended - began) * 1e3,
                         (time.monotonic() - ended) * 1e3)
         return self._returned(value)
+
+    def _send(self, item: tuple[int, Any, Any]) -> tuple[Connection, float]:
+        """Send a cloud to the child, to a new one if it had ended (the pipe said so: no
+        check of its own per cloud, a system call that gives up the GIL); return the pipe and
+        when it was sent.
+
+        Raises:
+            OdometryUnavailable: it had ended and the next restart is not due yet, or the
+                new child ended too.
+        """
+        for attempt in range(2):
+            if self._conn is None:
+                self._restart()
+            conn = self._conn  # close() on another thread may clear self._conn meanwhile
+            assert conn is not None
+            sent = time.monotonic()
+            try:
+                _send_once(conn, item)
+                return conn, sent
+            except OSError as err:  # it had ended: this cloud never reached it
+                if self._closed:
+                    raise OdometryUnavailable('the KISS-ICP process was closed') from err
+                line = self._lost(None)
+                if attempt:
+                    raise OdometryUnavailable(f'{line}: the cloud is skipped') from err
+        raise AssertionError('unreachable')
 
     def _returned(self, sample: OdomSample | None) -> OdomSample | None:
         """The child's sample, with the restart's reason on the first one after it."""

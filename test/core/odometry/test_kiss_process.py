@@ -5,8 +5,11 @@ restart_sec; the clouds in between are refused with OdometryUnavailable), not a 
 from __future__ import annotations
 
 import os
+import re
 import signal
+import threading
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,6 +21,7 @@ from solid_ros.sim import DEMO_SENSORS, Drive, DriveConfig
 
 pytest.importorskip('kiss_icp', reason='kiss-icp is not installed')
 
+from solid_ros.core.odometry import kiss_process  # noqa: E402
 from solid_ros.core.odometry.kiss_process import KissProcess  # noqa: E402
 
 SEC = 1_000_000_000
@@ -60,7 +64,8 @@ def test_the_child_gives_the_poses_and_counters_of_kiss_odometry_here() -> None:
     assert not child._child.is_alive()
 
 
-def test_a_killed_child_is_restarted_in_a_new_segment_at_the_last_pose() -> None:
+def test_a_killed_child_is_restarted_in_a_new_segment_at_the_last_pose(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     clouds = _clouds(6)
     now = [100.0]
     child = KissProcess(CONFIG, restart_sec=5.0, clock=lambda: now[0])
@@ -89,7 +94,7 @@ def test_a_killed_child_is_restarted_in_a_new_segment_at_the_last_pose() -> None
         assert not np.allclose(got[1].pose, last, atol=1e-3)  # it moves again
         assert (child.restarts, child.ended, child.resets, child.registered) == (1, 1, 1, 5)
         assert child.reset_counts == {'restart': 1}
-        _dies_again_within_restart_sec(child, clouds[5], now)
+        _dies_again_within_restart_sec(child, clouds[5], now, monkeypatch)
     finally:
         child.close()
     assert child.pid is None
@@ -98,17 +103,35 @@ def test_a_killed_child_is_restarted_in_a_new_segment_at_the_last_pose() -> None
     assert child.pid is None and child.restarts == 2
 
 
-def _dies_again_within_restart_sec(child: KissProcess, cloud: np.ndarray,
-                                   now: list[float]) -> None:
+def _dies_again_within_restart_sec(child: KissProcess, cloud: np.ndarray, now: list[float],
+                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """A child that ends with a cloud in it, then again before ``restart_sec``: skipped clouds
     (OdometryUnavailable), no restart until the clock allows it."""
     pid = child.pid
     assert pid is not None
-    os.kill(pid, signal.SIGKILL)
-    child._child.join(10.0)
-    child._child.is_alive = lambda: True  # as if it died after the check, with the cloud in it
-    with pytest.raises(OdometryUnavailable, match='ended .*exit code -9.*skipped'):
-        child.pose_for(7 * SEC, cloud)
+    os.kill(pid, signal.SIGSTOP)  # it takes the cloud and never answers
+    sent = threading.Event()
+    real = kiss_process._send_once
+
+    def send(conn: Any, item: Any) -> None:
+        real(conn, item)
+        sent.set()
+
+    monkeypatch.setattr(kiss_process, '_send_once', send)
+    refused: list[Exception] = []
+
+    def register() -> None:
+        try:
+            child.pose_for(7 * SEC, cloud[:2000])  # small: the pipe holds it all
+        except OdometryUnavailable as err:
+            refused.append(err)
+
+    waiting = threading.Thread(target=register)
+    waiting.start()
+    assert sent.wait(30.0)
+    os.kill(pid, signal.SIGKILL)  # with the cloud in it
+    waiting.join(30.0)
+    assert len(refused) == 1 and re.search('ended .*exit code -9.*skipped', str(refused[0]))
     now[0] += 4.0
     with pytest.raises(OdometryUnavailable, match=r'restarts in 1\.0 s'):
         child.pose_for(8 * SEC, cloud)
