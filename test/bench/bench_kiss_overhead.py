@@ -1,6 +1,6 @@
 """Where the node's KISS-ICP odometry spends its time beyond plain KISS-ICP, one cloud at a time.
 
-Run: ``nice python test/bench/bench_kiss_overhead.py [--clouds 150]
+Run: ``nice python test/bench/bench_kiss_overhead.py [--clouds 150] [--kitti 25]
 [--report doc/reports/bench_kiss_overhead.md]``.
 
 bench_node_kiss measured the node's odometry at a median 91 ms per hku1 cloud against 64 ms
@@ -20,7 +20,9 @@ the same clouds (hku1, the first ``--clouds``, bench_kiss's RECIPE: voxel 0.5 m,
 
 It runs twice: alone, then with a pure-Python thread spinning in this process (the node's
 describe and verify threads hold the GIL and a core the same way: KISS-ICP in this process
-stalls it, the child has to share the 2 cores with it). The poses of 2 and 3 are compared.
+stalls it, the child has to share the 2 cores with it). Then, alone, ``--kitti`` clouds of
+KITTI scan 313 turning (bench_node_kiss's, 121k points) at its two settings (voxel 0.5 m, max
+range 50 m; voxel 1 m, max range 30 m). The poses of 2 and 3 are compared.
 """
 
 from __future__ import annotations
@@ -77,16 +79,17 @@ def _spin(stop: threading.Event) -> None:
             x += i
 
 
-def run(clouds: list[np.ndarray]) -> dict[str, list[float]]:
+def run(clouds: list[np.ndarray], voxel: float = 0.5,
+        max_range: float = 50.0) -> dict[str, list[float]]:
     """Each cloud through plain KISS-ICP, KissOdometry here and KissProcess; ms by part."""
     from solid_ros.core.config import NodeConfig
     from solid_ros.core.odometry.kiss import KissOdometry, load_kiss_icp
     from solid_ros.core.odometry.kiss_process import KissProcess
 
-    cfg = NodeConfig(kiss_max_range=50.0, kiss_voxel_size=0.5, kiss_deskew=False)
+    cfg = NodeConfig(kiss_max_range=max_range, kiss_voxel_size=voxel, kiss_deskew=False)
     KissICP, KISSConfig, _ = load_kiss_icp()
     kc = KISSConfig()
-    kc.data.max_range, kc.data.deskew, kc.mapping.voxel_size = 50.0, False, 0.5
+    kc.data.max_range, kc.data.deskew, kc.mapping.voxel_size = max_range, False, voxel
     plain = KissICP(kc)
     here = KissOdometry(cfg)
     out: dict[str, list[float]] = defaultdict(list)
@@ -121,6 +124,8 @@ def run(clouds: list[np.ndarray]) -> dict[str, list[float]]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--clouds', type=int, default=150, help='hku1 clouds')
+    parser.add_argument('--kitti', type=int, default=25,
+                        help='KITTI 313 clouds (121k points) per setting; 0 skips them')
     parser.add_argument('--report', type=Path, help='write the printed figures (.md or JSON)')
     args = parser.parse_args()
     if not (DATA / 'hku1' / 'bag').is_dir():
@@ -136,7 +141,26 @@ def main() -> int:
                   f'{"a spinning thread beside" if busy else "alone"} ({_load()} before)')
             _print(_run_beside(clouds, busy))
             print(f'  ({_load()} after)')
+        _kitti(args.kitti)
     return 0
+
+
+def _kitti(count: int) -> None:
+    """The same, alone, on KITTI scan 313 (121k points) turning (bench_node_kiss's clouds), with
+    bench_node_kiss's two settings: the checks grow with the cloud, KISS-ICP less."""
+    if count <= 0:
+        return
+    from bench_node_kiss import there_and_back, turned
+
+    from solid_ros.formats.pointfiles import read_pcd
+
+    base = turned(read_pcd(DATA / 'kitti' / 'pcd' / '000313.pcd'), 40)
+    clouds = [base[there_and_back(i, len(base))] for i in range(count)]
+    for voxel, max_range in ((0.5, 50.0), (1.0, 30.0)):
+        print(f'KITTI 313 turning, {count} clouds of {len(base[0])} points, voxel {voxel:g} m, '
+              f'max range {max_range:g} m, alone ({_load()} before)')
+        _print(run(clouds, voxel, max_range))
+        print(f'  ({_load()} after)')
 
 
 def _run_beside(clouds: list[np.ndarray], busy: bool) -> dict[str, list[float]]:
