@@ -29,3 +29,8 @@ class PoseError(SolidError, ValueError):
 
 class BackendError(SolidError):
     """The pose graph back end cannot run (gtsam missing) or was given unusable input."""
+
+
+class OdometryUnavailable(SolidError):
+    """The odometry source cannot register a cloud now (its process ended and is not
+    restarted yet): the caller skips the cloud."""

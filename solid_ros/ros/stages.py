@@ -13,13 +13,15 @@ takes well under a millisecond, less than waking the other thread. Each stage is
 counted by :class:`~solid_ros.ros.health.InputHealth` and logged, and the stages go on. A
 cloud the odometry stage drops is never registered nor stored (counted as skipped and as
 odometry_skipped): KISS-ICP bridges the gap with its constant-velocity guess (and the
-adapter's time-scaled one). No ROS import: the node passes its odometry, its output and its
-logger in.
+adapter's time-scaled one). So is a cloud the odometry cannot register for now (its process
+ended and restarts later: :class:`~solid_ros.core.errors.OdometryUnavailable`). No ROS
+import: the node passes its odometry, its output and its logger in.
 """
 
 from __future__ import annotations
 
 import importlib
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.candidates.proposal import Proposal
-from solid_ros.core.errors import CloudError
+from solid_ros.core.errors import CloudError, OdometryUnavailable
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdomSample
 from solid_ros.core.results import ScanResult
@@ -121,6 +123,7 @@ class Stages:
         self._pair, self._hand_on, self._share = pair, hand_on, share
         self._verify, self._use_odom = verify, use_odom
         self._register = register
+        self._skip_lock = threading.Lock()
         self._describe_worker: Worker[_Scan] = Worker(
             'solid_describe', self._describe_stage, queue_size, self._describe_failed)
         self._verify_worker: Worker[_Keyframe] = Worker(
@@ -146,13 +149,18 @@ class Stages:
         if self._odometry_worker is None:
             self._to_describe(scan)
         elif self._odometry_worker.put(scan):
-            skipped = self._health.trouble('skipped')
-            self._health.stats.odometry_skipped += 1  # only this thread writes it
+            skipped = self._odometry_skipped()
             self._log.warning(
                 'odometry falls behind: dropped the oldest cloud waiting for registration '
                 f'({skipped} skipped so far; KISS-ICP bridges the gap with its '
                 'constant-velocity guess; the cloud is not stored)',
                 throttle_duration_sec=WARN_THROTTLE_SEC)
+
+    def _odometry_skipped(self) -> int:
+        """Count a cloud skipped before registration; return the clouds skipped so far."""
+        with self._skip_lock:  # the subscription's thread and the odometry thread count
+            self._health.stats.odometry_skipped += 1
+        return self._health.trouble('skipped')
 
     def _to_describe(self, scan: _Scan) -> None:
         if self._describe_worker.put(scan):
@@ -205,7 +213,13 @@ class Stages:
     def _odometry_stage(self, scan: _Scan) -> None:
         assert self._register is not None
         t0 = time.perf_counter()
-        odom = self._register(scan.stamp_ns, scan.points, scan.times)
+        try:
+            odom = self._register(scan.stamp_ns, scan.points, scan.times)
+        except OdometryUnavailable as err:
+            skipped = self._odometry_skipped()
+            self._log.warning(f'odometry unavailable, cloud skipped ({skipped} skipped so far): '
+                              f'{err}', throttle_duration_sec=WARN_THROTTLE_SEC)
+            return
         self.timings.add('odometry', (time.perf_counter() - t0) * 1e3)
         self._to_describe(_Scan(scan.points, scan.stamp_ns, None, odom, registered=True))
 

@@ -5,6 +5,7 @@ for deskew when they carry a time field."""
 from __future__ import annotations
 
 import os
+import signal
 import threading
 from collections.abc import Callable
 
@@ -54,7 +55,9 @@ def timed_cloud(points: np.ndarray, stamp_ns: int, field: str | None) -> PointCl
 
 
 def _run(harness: Callable[..., Harness], field: str | None,
-         extra: list[Parameter] | None = None) -> dict[str, str]:
+         extra: list[Parameter] | None = None,
+         then: Callable[[Harness, list[Odometry], Drive], None] | None = None
+         ) -> dict[str, str]:
     h = harness(KISS + (extra or []), params_file=None)
     odometry: list[Odometry] = []
     h.client.create_subscription(Odometry, '/solid_node/kiss/odometry', odometry.append, 100)
@@ -72,8 +75,35 @@ def _run(harness: Callable[..., Harness], field: str | None,
     assert pid is not None and pid != os.getpid()
     assert status['odometry_queue_length'] == '0' and status['odometry_skipped'] == '0'
     assert status['odometry_ms_p50'] != 'nan'
+    # The stage's time holds the child's (its clock splits the round trip) and the hand-over.
+    assert 0 < float(status['kiss_icp_ms_p50']) <= float(status['odometry_ms_p50'])
+    assert 0 < float(status['kiss_handover_ms_p50']) <= float(status['odometry_ms_p50'])
     assert status['clouds_without_odom'] == '0'
+    if then is not None:
+        then(h, odometry, drive)
     return status
+
+
+def _kill_kiss_icp(h: Harness, odometry: list[Odometry], drive: Drive) -> None:
+    """KISS-ICP's process killed after cloud 4: clouds 5 and 6 get poses from a new one, in a
+    new segment that starts at cloud 4's pose, and become keyframes of the back end."""
+    source = h.node._kiss._source  # type: ignore[union-attr]
+    keyframes, stored = int(h.status()['backend_keyframes']), int(h.status()['database_size'])
+    pid = source.pid
+    assert pid is not None and h.status()['kiss_restarts'] == '0'
+    os.kill(pid, signal.SIGKILL)
+    source._child.join(10.0)
+    h.replay([('points', timed_cloud(drive.scan(i).points, (i + 1) * SEC, None))
+              for i in (4, 5)])
+    h.wait_for(lambda: len(odometry) == 6, 'odometry from the restarted process', 30.0)
+    assert source.pid not in (None, pid)
+    h.wait_for(lambda: (h.status().get('kiss_restarts'), h.status().get('clouds_processed'))
+               == ('1', '6'), 'diagnostics after the restart', 30.0)
+    status = h.status()
+    assert status['kiss_reset_restart'] == '1' and status['odometry_skipped'] == '0'
+    assert status['kiss_registered'] == '6' and status['clouds_failed'] == '0'
+    assert int(status['backend_keyframes']) > keyframes and int(status['database_size']) > stored
+    assert odometry[4].pose.pose == odometry[3].pose.pose  # the new segment's start
 
 
 @pytest.mark.parametrize('field', ['t', 'offset_time'])
@@ -83,9 +113,9 @@ def test_per_point_times_of_the_cloud_reach_kiss_icp(harness: Callable[..., Harn
     assert status['kiss_deskewed'] == '4'
 
 
-def test_a_cloud_without_a_time_field_is_registered_without_deskew(
+def test_a_cloud_without_a_time_field_is_registered_without_deskew_and_a_killed_kiss_icp_restarts(
         harness: Callable[..., Harness]) -> None:
-    status = _run(harness, None)
+    status = _run(harness, None, [Parameter('backend', value=True)], then=_kill_kiss_icp)
     assert status['kiss_deskewed'] == '0'
 
 

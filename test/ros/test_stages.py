@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.errors import OdometryUnavailable
 from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.odometry.track import OdomSample
@@ -255,3 +256,33 @@ def test_clouds_the_odometry_stage_drops_are_counted_and_logged() -> None:
     assert s.processed == len(described) and 5 * SEC in described
     warned = [m for level, m in log.lines if level == 'warning']
     assert warned and 'odometry falls behind' in warned[0] and 'not stored' in warned[0]
+
+
+class DownOdometry(SlowOdometry):
+    """Registration whose odometry is unavailable for the clouds of ``down`` stamps."""
+
+    def __init__(self, down: set[int]) -> None:
+        super().__init__(0.0)
+        self.down = down
+
+    def __call__(self, stamp_ns: int, points: Any, times: Any) -> OdomSample:
+        if stamp_ns in self.down:
+            raise OdometryUnavailable('the KISS-ICP process ended; it restarts in 4.0 s')
+        return super().__call__(stamp_ns, points, times)
+
+
+def test_clouds_the_odometry_cannot_register_for_now_are_skipped_not_failed() -> None:
+    stages, health, log, described = _stages_with(DownOdometry({2 * SEC, 3 * SEC}), 10)
+    stages.start()
+    pts = scene()
+    try:
+        for i in range(4):
+            stages.put((pts, (i + 1) * SEC))
+        assert stages.wait_idle(60.0)
+    finally:
+        stages.stop(10.0)
+    s = health.stats
+    assert sorted(described) == [SEC, 4 * SEC]  # neither registered nor stored
+    assert (s.odometry_skipped, s.skipped, s.failed, s.processed) == (2, 2, 0, 2)
+    warned = [m for level, m in log.lines if level == 'warning']
+    assert warned and 'odometry unavailable' in warned[0] and 'restarts in' in warned[0]

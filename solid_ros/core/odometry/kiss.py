@@ -79,6 +79,9 @@ class KissOdometry:
 
     Args:
         config: node settings (``kiss_*``); defaults when None.
+        segment: the first segment's number (a source that continues another one, as
+            :class:`~solid_ros.core.odometry.kiss_process.KissProcess` after a restart).
+        pose: where the first segment starts in the odometry frame (identity when None).
 
     Raises:
         SolidError: kiss-icp is not installed.
@@ -104,17 +107,19 @@ class KissOdometry:
     name = 'kiss_icp'
     takes_point_times = True  # pose_for deskews with per-point times
 
-    def __init__(self, config: NodeConfig | None = None) -> None:
+    def __init__(self, config: NodeConfig | None = None, *, segment: int = 0,
+                 pose: FloatArray | None = None) -> None:
         self.config = config if config is not None else NodeConfig()
         self._KissICP, self._KISSConfig, self._voxel_down_sample = load_kiss_icp()
-        self.segment = 0
+        self.segment = int(segment)
         self.resets = 0
         self.registered = 0
         self.deskewed = 0
         self.reset_counts: Counter[str] = Counter()
         self.input_counts: Counter[str] = Counter()
-        self._origin: FloatArray = np.eye(4)  # odom <- this segment's KISS-ICP frame
-        self._pose: FloatArray = np.eye(4)  # last accepted pose, odom frame
+        start = np.eye(4) if pose is None else np.array(pose, dtype=np.float64)
+        self._origin: FloatArray = start.copy()  # odom <- this segment's KISS-ICP frame
+        self._pose: FloatArray = start  # last accepted pose, odom frame
         self._kiss: Any = None  # None: the segment has no cloud yet
         self._prev: Frame | None = None
         self._guard: OverlapGuard | None = None
@@ -165,7 +170,9 @@ class KissOdometry:
         if self._guard is None:
             self._settle(frame)
         c = self.config
-        gated = _in_range(frame, c.kiss_min_range, c.kiss_max_range)
+        ranges = _norms(frame)
+        in_gate = (ranges > c.kiss_min_range) & (ranges < c.kiss_max_range)
+        gated = int(np.count_nonzero(in_gate))
         if gated < MIN_POINTS:
             self._reset('points', f'{gated} finite points within ({c.kiss_min_range:g}, '
                         f'{c.kiss_max_range:g}) m, needs {MIN_POINTS}')
@@ -179,7 +186,7 @@ class KissOdometry:
         times = times[keep] if len(times) == len(keep) else np.zeros(0)
         if len(times) and c.kiss_deskew:
             self.deskewed += 1
-        check = self._prepare(frame)
+        check = self._prepare(frame[in_gate])
         if self._kiss is not None and check.constraint < c.kiss_min_constraint:
             self._reset('degenerate', f'degenerate cloud: translation constraint '
                         f'{check.constraint:.4f} < {c.kiss_min_constraint:g} '
@@ -261,13 +268,11 @@ class KissOdometry:
                     f'{self._guard.typical:.2f})'), overlap
         return None, overlap
 
-    def _prepare(self, frame: FloatArray) -> Frame:
-        """Voxelise as KISS-ICP does for registration, then normals, structure, constraint."""
-        c = self.config
-        r = np.linalg.norm(frame, axis=1)
-        gated = frame[(r > c.kiss_min_range) & (r < c.kiss_max_range)]
-        return prepare(np.asarray(self._voxel_down_sample(gated, 1.5 * c.kiss_voxel_size),
-                                  dtype=np.float64))
+    def _prepare(self, gated: FloatArray) -> Frame:
+        """Voxelise the points within the range gate as KISS-ICP does for registration, then
+        normals, structure, constraint."""
+        voxel = 1.5 * self.config.kiss_voxel_size
+        return prepare(np.asarray(self._voxel_down_sample(gated, voxel), dtype=np.float64))
 
     def reset(self, reason: str = 'requested') -> None:
         """Start a new segment on the next cloud (a caller's reset: a time jump, a relocalised
@@ -295,15 +300,23 @@ class KissOdometry:
 
 def _finite_xyz(points: Points) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
     """(N, 3) float64 C-contiguous x, y, z of the finite rows, and which rows those are (none
-    for a malformed array)."""
+    for a malformed array).
+
+    Column by column and without the masked copy when every row is finite: a row-wise
+    ``np.all(..., axis=1)`` and the copy took 6.6 ms of a 121k-point cloud.
+    """
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[1] < 3 or not np.issubdtype(p.dtype, np.number):
         return np.zeros((0, 3)), np.zeros(0, dtype=bool)
-    xyz = p[:, :3].astype(np.float64)
-    keep = np.all(np.isfinite(xyz), axis=1)
-    return np.ascontiguousarray(xyz[keep]), keep
+    xyz = np.array(p[:, :3], dtype=np.float64, order='C')
+    finite = np.isfinite(xyz)
+    keep = finite[:, 0] & finite[:, 1] & finite[:, 2]
+    return (xyz if keep.all() else xyz[keep]), keep
 
 
-def _in_range(points: FloatArray, low: float, high: float) -> int:
-    r = np.linalg.norm(points, axis=1)
-    return int(np.count_nonzero((r > low) & (r < high)))
+def _norms(points: FloatArray) -> FloatArray:
+    """Each row's length, as ``np.linalg.norm(points, axis=1)`` sums it (x, then y, then z),
+    without its row-wise reduction (3.7 ms of a 121k-point cloud, computed twice before)."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    out: FloatArray = np.sqrt(x * x + y * y + z * z)
+    return out

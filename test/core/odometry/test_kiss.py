@@ -223,3 +223,22 @@ def test_settings_are_checked() -> None:
         NodeConfig(kiss_min_range=10.0, kiss_max_range=5.0)
     with pytest.raises(ConfigError, match='odometry_source'):
         NodeConfig(odometry_source='wheels')
+
+
+def test_the_input_checks_give_numpys_ranges_and_finite_rows_to_the_bit() -> None:
+    """The cheaper range and finite-row code keeps what the gate and the checks see exactly."""
+    from solid_ros.core.odometry.kiss import _finite_xyz, _norms
+
+    rng = np.random.default_rng(5)
+    pts = rng.normal(scale=30.0, size=(20_000, 4)).astype(np.float32)
+    pts[::3] *= np.float32(1e-3)
+    pts[::97, 1] = np.nan
+    pts[::89, 2] = np.inf
+    xyz, keep = _finite_xyz(pts)
+    want = pts[:, :3].astype(np.float64)
+    want_keep = np.all(np.isfinite(want), axis=1)
+    assert np.array_equal(keep, want_keep) and not keep.all()
+    assert np.array_equal(xyz, want[want_keep]) and xyz.flags['C_CONTIGUOUS']
+    assert np.array_equal(_norms(xyz), np.linalg.norm(xyz, axis=1))
+    clean, every = _finite_xyz(pts[want_keep])
+    assert every.all() and np.array_equal(clean, xyz) and clean.dtype == np.float64
