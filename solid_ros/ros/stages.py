@@ -10,11 +10,11 @@ hands the result on as one :class:`Verified`, whose receiver publishes its loops
 commits it to the back end. With ``verify`` off stage 1 hands on itself: what is left
 takes well under a millisecond, less than waking the other thread. Each stage is a
 :class:`~solid_ros.ros.worker.Worker` with a bounded keep-newest queue; drops and failures are
-counted by :class:`~solid_ros.ros.health.InputHealth` and logged, and the stages go on. A
-cloud the odometry stage drops is never registered nor stored (counted as skipped and as
-odometry_skipped): KISS-ICP bridges the gap with its constant-velocity guess (and the
-adapter's time-scaled one). So is a cloud the odometry cannot register for now (its process
-ended and restarts later: :class:`~solid_ros.core.errors.OdometryUnavailable`). No ROS
+counted by :class:`~solid_ros.ros.health.InputHealth` and logged, and the stages go on.
+The odometry stage's queue is deeper (:data:`ODOMETRY_QUEUE`): a cloud it drops is never
+registered nor stored (counted as skipped and as odometry_skipped), and a gap costs the
+odometry far more than a late pose. So is a cloud the odometry cannot register for now (its
+process ended and restarts later: :class:`~solid_ros.core.errors.OdometryUnavailable`). No ROS
 import: the node passes its odometry, its output and its logger in.
 """
 
@@ -41,9 +41,15 @@ from solid_ros.ros.shared_detector import SharedDetector
 from solid_ros.ros.stats import StageTimings
 from solid_ros.ros.worker import Worker
 
-__all__ = ['Cloud', 'Stages', 'Verified']
+__all__ = ['ODOMETRY_QUEUE', 'Cloud', 'Stages', 'Verified']
 
 MIN_PROPOSALS = 20  # keyframes that may wait for verification (at least queue_size)
+# Clouds that may wait for registration (at least queue_size): KISS-ICP's bursts (hku1 p95
+# 2-3x its median) pass with a late pose instead of a gap, and a gap costs the odometry:
+# hku1 with 17 % of its clouds dropped at random tracks at 2.0-3.0 m ATE, not 0.21 m (our
+# adapter; plain KISS-ICP with every second cloud 9.1 m). 3 s at 10 Hz; beyond, the node is
+# too slow for the rate and drops.
+ODOMETRY_QUEUE = 30
 
 Cloud = tuple[npt.NDArray[np.floating[Any]], int]  # (points, stamp_ns) of a decoded cloud
 Times = npt.NDArray[np.float64] | None  # per-point times in [0, 1] (deskew), if the cloud has them
@@ -132,7 +138,8 @@ class Stages:
         self._odometry_worker: Worker[_Scan] | None = None
         workers: list[Worker[Any]] = [self._describe_worker, self._verify_worker]
         if register is not None:
-            self._odometry_worker = Worker('solid_odometry', self._odometry_stage, queue_size,
+            self._odometry_worker = Worker('solid_odometry', self._odometry_stage,
+                                           max(ODOMETRY_QUEUE, queue_size),
                                            self._describe_failed)
             workers.insert(0, self._odometry_worker)
         self._workers = tuple(workers)
@@ -151,9 +158,9 @@ class Stages:
         elif self._odometry_worker.put(scan):
             skipped = self._odometry_skipped()
             self._log.warning(
-                'odometry falls behind: dropped the oldest cloud waiting for registration '
-                f'({skipped} skipped so far; KISS-ICP bridges the gap with its '
-                'constant-velocity guess; the cloud is not stored)',
+                f'odometry falls behind: {ODOMETRY_QUEUE} clouds wait for registration, '
+                f'dropped the oldest ({skipped} skipped so far; the cloud is not stored and '
+                'the gap costs the odometry: lower the rate or the points, see the README)',
                 throttle_duration_sec=WARN_THROTTLE_SEC)
 
     def _odometry_skipped(self) -> int:

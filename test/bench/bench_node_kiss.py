@@ -21,7 +21,10 @@ of which before registration ``odometry_skipped``), the node's per-cloud odometr
 process; of it, ``kiss_icp_ms_p50`` in KISS-ICP's process and ``kiss_handover_ms_p50`` the
 hand-over there and back) and, after the node has stopped, plain KISS-ICP 1.3's per-cloud
 cost on the same clouds in this process (``register_frame``, same settings). The KITTI part
-runs again with ``--coarse`` (KISS-ICP voxel 1 m, max range 30 m). ``--node-root`` runs the
+runs again with ``--coarse`` (KISS-ICP voxel 1 m, max range 30 m). Last, the odometry's ATE
+on hku1 against the reference poses: the node's over the clouds it posed, and plain
+KISS-ICP's over every cloud and over those (a dropped cloud is a gap the odometry must
+bridge). ``--node-root`` runs the
 node of another checkout (e.g. main before the odometry stage; it reports no odometry_ms).
 Timings on a shared 2-core machine are noisy: the load is printed with each part.
 """
@@ -47,6 +50,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / 'test'))
 
 from bench.report import PrintedReport, bench_meta  # noqa: E402
+
+from solid_ros.formats.poses import read_kitti_poses  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
 NS = 1_000_000_000
@@ -83,9 +88,9 @@ def turned(points: np.ndarray, count: int, seed: int = 0) -> list[np.ndarray]:
 
 
 def plain_kiss(clouds: list[np.ndarray], voxel: float = RECIPE[0],
-               max_range: float = RECIPE[1]) -> list[float]:
+               max_range: float = RECIPE[1]) -> tuple[list[float], np.ndarray]:
     """KISS-ICP 1.3 alone as bench_kiss's RECIPE calls it (or with this voxel and range); ms
-    per cloud."""
+    per cloud and the poses."""
     from solid_ros.core.odometry.kiss import load_kiss_icp
 
     KissICP, KISSConfig, _ = load_kiss_icp()
@@ -94,13 +99,28 @@ def plain_kiss(clouds: list[np.ndarray], voxel: float = RECIPE[0],
     config.data.deskew = False
     config.mapping.voxel_size = voxel
     kiss = KissICP(config)
-    costs = []
+    costs, poses = [], []
     for points in clouds:
         pts = np.asarray(points, dtype=np.float64)
         t0 = time.perf_counter()
         kiss.register_frame(pts, np.zeros(len(pts)))
         costs.append((time.perf_counter() - t0) * 1e3)
-    return costs
+        poses.append(np.array(kiss.last_pose, dtype=np.float64))
+    return costs, np.stack(poses)
+
+
+def node_poses(probe: Probe) -> tuple[np.ndarray, np.ndarray]:
+    """The clouds of the last publish() that got a pose (indices) and those poses."""
+    with probe.lock:
+        got = [(i, probe.poses[s]) for i, s in enumerate(probe.sent) if s in probe.poses]
+    return np.array([i for i, _ in got], dtype=np.intp), np.stack([T for _, T in got])
+
+
+def ate(poses: np.ndarray, reference: np.ndarray) -> float:
+    """ATE RMSE after one SE(3) fit, metres (bench_kiss's)."""
+    from bench.bench_kiss import trajectory_errors
+
+    return trajectory_errors(poses, reference)[0]
 
 
 def there_and_back(i: int, n: int) -> int:
@@ -126,6 +146,7 @@ class Probe:
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.pub = self.node.create_publisher(PointCloud2, '/points', qos)
         self.posed: set[int] = set()
+        self.poses: dict[int, np.ndarray] = {}  # the node's odometry pose by cloud stamp
         self.diag: dict[str, str] = {}
         self.lock = threading.Lock()
         self.node.create_subscription(Odometry, '/solid_node/kiss/odometry', self._on_odom,
@@ -137,10 +158,16 @@ class Probe:
         self.spinner = threading.Thread(target=self.executor.spin, daemon=True)
         self.spinner.start()
         self.stamp = 1_000 * NS
+        self.sent: list[int] = []  # the stamps of the last publish(), in order
 
     def _on_odom(self, msg: Any) -> None:
+        from solid_ros.core.geometry import vector_to_matrix
+
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        stamp = msg.header.stamp.sec * NS + msg.header.stamp.nanosec
         with self.lock:
-            self.posed.add(msg.header.stamp.sec * NS + msg.header.stamp.nanosec)
+            self.posed.add(stamp)
+            self.poses[stamp] = vector_to_matrix([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
 
     def _on_diag(self, msg: Any) -> None:
         for s in msg.status:
@@ -172,6 +199,7 @@ class Probe:
             sent.append(self.stamp)
             self.pub.publish(msg)
         self._drain(sent)
+        self.sent = sent
         with self.lock:
             posed = len(self.posed.intersection(sent))
         return (count, posed, self._int('clouds_skipped') - skipped0,
@@ -242,7 +270,8 @@ def _line(name: str, run: tuple[int, int, int, int], probe: Probe) -> None:
           f"processing p50 {probe.value('processing_ms_p50')} ms ({_load()})")
 
 
-def bench_hku1(probe: Probe, args: argparse.Namespace) -> list[np.ndarray]:
+def bench_hku1(probe: Probe, args: argparse.Namespace
+               ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     from hku1_data import hku1_scans
 
     clouds = [np.asarray(c[:, :3], dtype=np.float32) for c in hku1_scans(DATA)[0][:args.clouds]]
@@ -253,9 +282,10 @@ def bench_hku1(probe: Probe, args: argparse.Namespace) -> list[np.ndarray]:
         print(f'hku1 (Livox Avia), {len(clouds)} clouds of {min(sizes)}-{max(sizes)} points '
               f'(median {int(np.median(sizes))}), 10 Hz:')
         _line('node', probe.publish(clouds, 10.0), probe)
+        posed, poses = node_poses(probe)
     finally:
         stop_node(proc)
-    return clouds
+    return clouds, posed, poses
 
 
 def bench_kitti(probe: Probe, args: argparse.Namespace, clouds: list[np.ndarray],
@@ -310,16 +340,22 @@ def main() -> int:
                                if args.coarse else [])
         probe = Probe()
         try:
-            hku1 = bench_hku1(probe, args)
+            hku1, posed, poses = bench_hku1(probe, args)
             for kiss in settings if kitti else []:
                 bench_kitti(probe, args, kitti, kiss)  # type: ignore[arg-type]
         finally:
             probe.close()
         print(f'plain KISS-ICP 1.3 in this process, same clouds ({_load()}):')
-        print(f'  hku1: {_ms(plain_kiss(hku1))} per cloud')
+        costs, plain = plain_kiss(hku1)
+        print(f'  hku1: {_ms(costs)} per cloud')
         for voxel, max_range in settings if kitti else []:
             print(f'  KITTI 120k turning, voxel {voxel:g} m, max range {max_range:g} m: '
-                  f'{_ms(plain_kiss(kitti, voxel, max_range))} per cloud')
+                  f'{_ms(plain_kiss(kitti, voxel, max_range)[0])} per cloud')
+        ref = read_kitti_poses(DATA / 'hku1' / 'optimized_poses.txt')[:len(hku1)]
+        print(f'odometry ATE on hku1 against the reference: the node (its {len(posed)} posed '
+              f'clouds) {ate(poses, ref[posed]):.3f} m; plain KISS-ICP on every cloud '
+              f"{ate(plain, ref):.3f} m, on the node's posed ones "
+              f'{ate(plain[posed], ref[posed]):.3f} m')
     return 0
 
 
