@@ -145,12 +145,12 @@ class Probe:
         if partner is None:
             return
         index = {s: i for i, s in det._own_seqs.items()}
-        a = index.get(partner[0])
-        pose_a = None if a is None else det.database.pose(partner[0])
+        a = index.get(partner[1])
+        pose_a = None if a is None else det.database.pose(partner[1])
         if a is None or pose_a is None:
             return
         further = det._partner(a, np.asarray(pose_a, dtype=np.float64))
-        b = None if further is None else index.get(further[0])
+        b = None if further is None else index.get(further[1])
         legs = {'ka': self.leg(det, k, a)}
         if b is not None and b in self._queries and a in self._queries:
             legs.update(ab=self.leg(det, a, b), kb=self.leg(det, k, b))
