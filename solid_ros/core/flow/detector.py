@@ -502,8 +502,9 @@ class LoopDetector:
             agreed = fits and error < AGREE_M and angle_deg(off) < AGREE_DEG
             # Away from the odometry: right all the same if a triangle of registrations
             # closes (a lost odometry is no judge).
-            right = agreed or (fits and self._closes(query, proposal.pose,
-                                                     proposal.query_index - back, m.T_mq))
+            right = agreed or (fits and self.calibration.wants_triangle(proposal.query_index)
+                               and self._closes(query, proposal.pose,
+                                                proposal.query_index - back, m.T_mq))
             # The drift only from poses the judge stands by as loops: a room aliases a few
             # metres off, a street seen from a car slides along itself (riv281: 2-12 m).
             verified = judge(m, verifier.bars, 'fine').verified

@@ -3,7 +3,8 @@
 A fixed free-space bar tuned on one sensor refuses right poses on another: people and cars
 move, vegetation is porous, glass and mixed pixels return ranges that no other scan confirms.
 So, as KISS-ICP adapts its own threshold to the data, the run measures itself. Each keyframe
-(every one until :data:`MIN_SAMPLES` pairs were measured, then every :data:`SAMPLE_EVERY`-th)
+(every one until :data:`MIN_SAMPLES` pairs agreed with the odometry, then every
+:data:`SAMPLE_EVERY`-th)
 is registered to an earlier keyframe of this session a few metres back along the odometry
 (:data:`PAIR_PATH_M`, at most :data:`PAIR_MAX_BACK` keyframes back and turned at most
 :data:`PAIR_MAX_TURN_DEG`), started from the odometry's relative pose, by the same coarse and
@@ -122,7 +123,16 @@ class Calibration:
         self._learned = Learned()
 
     def wants(self, query_index: int) -> bool:
-        """Whether keyframe ``query_index`` should be registered to a partner."""
+        """Whether keyframe ``query_index`` should be registered to a partner: every one until
+        :data:`MIN_SAMPLES` pairs agreed with the odometry (their conflict sets a registered
+        step's bar, as fast as where every right pair agreed), then every
+        :data:`SAMPLE_EVERY`-th."""
+        return self._learned.agreed < MIN_SAMPLES or query_index % SAMPLE_EVERY == 0
+
+    def wants_triangle(self, query_index: int) -> bool:
+        """Whether a pair of keyframe ``query_index`` away from the odometry should be checked
+        by a triangle (two more registrations): until :data:`MIN_SAMPLES` right pairs, then
+        every :data:`SAMPLE_EVERY`-th keyframe (a lost odometry would triple the cost)."""
         return len(self._conflict) < MIN_SAMPLES or query_index % SAMPLE_EVERY == 0
 
     def add(self, right: bool, conflict: float, verified: bool, odom_error_m: float,

@@ -91,3 +91,17 @@ def test_pairs_a_triangle_showed_right_teach_the_conflict_not_that_the_odometry_
     learned = cal.learned
     assert learned.agreed == MIN_SAMPLES and learned.odometry_agrees
     assert learned.agreed_conflict_q75 == pytest.approx(0.02)
+
+
+def test_sampling_stays_dense_until_the_odometry_agreed_but_triangles_thin_out() -> None:
+    cal = Calibration()
+    for _ in range(MIN_SAMPLES):
+        cal.add(True, 0.08, False, 1.0, 2.0, agreed=False)  # a triangle showed them right
+    # A registered step's bar still waits for pairs the odometry agreed with: keep sampling
+    # every keyframe, but check by a triangle only every n-th.
+    odd = SAMPLE_EVERY * 3 + 1
+    assert cal.wants(odd) and not cal.wants_triangle(odd)
+    assert cal.wants_triangle(SAMPLE_EVERY * 3)
+    for _ in range(MIN_SAMPLES):
+        cal.add(True, 0.02, False, 0.1, 2.0)
+    assert not cal.wants(odd) and cal.wants(SAMPLE_EVERY * 3)
