@@ -63,3 +63,30 @@ def test_bench_fleet_map_prints_joint_ate_and_false_loop_moves() -> None:
     assert 'sim: joint ATE' in out and 'robot 2 <- 1: aligned True' in out
     line = next(ln for ln in out.splitlines() if ln.startswith('sim + 4 false loops'))
     assert '4 false published' in line and 'worst' in line
+
+
+def test_refused_evidence_finds_the_bar_that_separates_right_from_wrong(tmp_path: Path) -> None:
+    run = tmp_path / 'rec'
+    run.mkdir()
+    cols = 'query_index,match_index,reason,detail,trans_err_m,rot_err_deg,coarse_overlap,conflict'
+    rows = ['1,0,conflict,a,0.1,0.5,0.5,0.05', '2,0,conflict,b,0.1,0.5,0.5,0.06',
+            '3,0,conflict,c,0.1,0.5,0.5,0.2',  # right, but above a wrong one
+            '4,0,conflict,d,0.1,0.5,0.0,0.01',  # shares no view: not measured
+            '5,0,conflict,e,4.0,90,0.5,0.1', '6,0,conflict,f,6.0,180,0.5,0.3',
+            '9,1,verified,,5.0,1.0,0.5,0.02']
+    (run / 'candidates.csv').write_text('\n'.join([cols, *rows]) + '\n')
+    out = _bench('refused_evidence.py', str(tmp_path))
+    assert 'conflict: refused 3 right, 2 wrong poses' in out
+    assert 'lets 2 of 3' in out  # 0.05 and 0.06 lie below the nearest wrong pose's 0.1
+    assert 'FALSE q9 m1 5.00 m / 1.0 deg' in out and 'conflict 0.02' in out
+
+
+def test_probe_calibration_scores_pairs_triangles_and_steps(shared_data: Path) -> None:
+    out = _bench('probe_calibration.py', '--set', 'quickshack', '--odometry', 'bag')
+    assert out.startswith('quickshack (odometry bag):')
+    pairs = next(ln for ln in out.splitlines() if ln.startswith('  pairs'))
+    assert int(pairs.split()[1]) >= 10  # every keyframe until ten were right
+    # With the reference odometry the closing triangles are right, and none is needed.
+    triangles = next(ln for ln in out.splitlines() if ln.startswith('  triangles'))
+    assert ' 0 wrong; 0 of them away from the odometry' in triangles
+    assert '  steps      0 registered' in out  # the bag's odometry: no registered steps

@@ -118,7 +118,9 @@ def _calibration(s: dict[str, Any]) -> str:
     c = s['calibration']
     if not c:
         return '-'
-    return (f'{c["right"]} right of {c["tried"]} pairs, conflict q75 {c["conflict_q75"]:.3f} '
+    agreed = f' ({c["agreed"]} where the odometry put them)' if 'agreed' in c else ''
+    return (f'{c["right"]} right{agreed} of {c["tried"]} pairs, conflict q75 '
+            f'{c["conflict_q75"]:.3f} '
             f'-> bar {s["max_conflict"]:.3f}; odometry drift {c["drift_per_m"]:.4f} per m '
             f'({c["drift_pairs"]} pairs)')
 

@@ -120,12 +120,18 @@ from solid_ros.core.verification.calibration import (
     PAIR_MAX_TURN_DEG,
     PAIR_PATH_M,
     Calibration,
+    closes,
 )
 from solid_ros.core.verification.judge import Bars, Measures, judge
 from solid_ros.core.verification.judge import bars as judge_bars
 from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
 from solid_ros.core.verification.registration import Query, coarsened, for_peers
-from solid_ros.core.verification.verifier import TIGHT_GRID, Verification, Verifier
+from solid_ros.core.verification.verifier import (
+    TIGHT_GRID,
+    PoseMeasures,
+    Verification,
+    Verifier,
+)
 
 __all__ = ['CloudFetcher', 'LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult',
            'Source', 'StageTimes']
@@ -481,34 +487,79 @@ class LoopDetector:
         partner = self._partner(proposal.query_index, proposal.pose)
         if partner is None:
             return
-        seq, path = partner
-        pose_j, cloud = self.database.pose(seq), self.clouds.get(seq)
-        if pose_j is None or cloud is None:
+        back, seq, path = partner
+        pose_j = self.database.pose(seq)
+        if pose_j is None or self.clouds.get(seq) is None:
             return
-        odo = np.linalg.solve(vector_to_matrix(pose_j), vector_to_matrix(proposal.pose))
-        guess = self._mount.level_pose(np.asarray(odo, dtype=np.float64))
-        coarse = verifier.coarse(query, (self._config.session_id, seq), cloud, [], (guess,))
-        if coarse.rejection is not None:
+        got = self._register_own(query, proposal.pose, seq)
+        if got is None:
             self.calibration.add(False, math.nan, False, math.nan, path)
         else:
-            m = verifier.measure(query, coarse)
+            m, guess = got
             off = np.linalg.solve(guess, m.T_mq)
             error = float(np.linalg.norm(off[:3, 3]))
-            right = (m.converged == 1.0 and error < AGREE_M and angle_deg(off) < AGREE_DEG
-                     and m.overlap >= self._config.verify_min_overlap)
+            fits = m.converged == 1.0 and m.overlap >= self._config.verify_min_overlap
+            agreed = fits and error < AGREE_M and angle_deg(off) < AGREE_DEG
+            # Away from the odometry: right all the same if a triangle of registrations
+            # closes (a lost odometry is no judge).
+            right = agreed or (fits and self.calibration.wants_triangle(proposal.query_index)
+                               and self._closes(query, proposal.pose,
+                                                proposal.query_index - back, m.T_mq))
             # The drift only from poses the judge stands by as loops: a room aliases a few
             # metres off, a street seen from a car slides along itself (riv281: 2-12 m).
             verified = judge(m, verifier.bars, 'fine').verified
             self.calibration.add(right, m.conflict if right else math.nan, verified, error,
-                                 path)
+                                 path, agreed)
         verifier.learn(self.calibration.learned)
 
-    def _partner(self, index: int, pose: FloatArray) -> tuple[int, float] | None:
-        """This session's keyframe a few metres back along the odometry (its sequence number
-        and the path between): the newest one :data:`PAIR_PATH_M` back or turned
-        :data:`PAIR_MAX_TURN_DEG` from ``pose``, else the oldest within
+    def _register_own(self, query: Query, pose: FloatArray,
+                      seq: int) -> tuple[PoseMeasures, FloatArray] | None:
+        """Register ``query`` (a keyframe of this session at odometry ``pose``) to this
+        session's stored keyframe ``seq`` from the odometry's relative pose: the measures of
+        the pose it converged to, unjudged, and that start (levelled ``T_mq``); None when
+        the keyframe's pose or cloud is gone or the coarse stage refused."""
+        assert self.verifier is not None
+        pose_j, cloud = self.database.pose(seq), self.clouds.get(seq)
+        if pose_j is None or cloud is None:
+            return None
+        odo = np.linalg.solve(vector_to_matrix(pose_j), vector_to_matrix(pose))
+        guess = self._mount.level_pose(np.asarray(odo, dtype=np.float64))
+        coarse = self.verifier.coarse(query, (self._config.session_id, seq), cloud, [],
+                                      (guess,))
+        if coarse.rejection is not None:
+            return None
+        return self.verifier.measure(query, coarse), guess
+
+    def _closes(self, query: Query, pose: FloatArray, a: int, T_ak: FloatArray) -> bool:
+        """Whether the query's registration ``T_ak`` to its partner, keyframe ``a``, closes a
+        triangle with the partner's own partner ``b``: a->b and query->b registered, both
+        converged with ``verify_min_overlap`` (see
+        :func:`~solid_ros.core.verification.calibration.closes`)."""
+        assert self.verifier is not None
+        seq_a = self._own_seqs.get(a)
+        stored = None if seq_a is None else self.database.pose(seq_a)
+        cloud_a = None if seq_a is None else self.clouds.get(seq_a)
+        if stored is None or cloud_a is None:
+            return False
+        pose_a: FloatArray = np.asarray(stored, dtype=np.float64)
+        partner = self._partner(a, pose_a)
+        if partner is None:
+            return False
+        legs = []
+        for q, p in ((self.verifier.query_of(cloud_a), pose_a), (query, pose)):
+            got = self._register_own(q, p, partner[1])
+            if got is None or not (got[0].converged == 1.0
+                                   and got[0].overlap >= self._config.verify_min_overlap):
+                return False
+            legs.append(got[0].T_mq)
+        return closes(T_ak, legs[0], legs[1])
+
+    def _partner(self, index: int, pose: FloatArray) -> tuple[int, int, float] | None:
+        """This session's keyframe a few metres back along the odometry (how many keyframes
+        back, its sequence number and the path between): the newest one :data:`PAIR_PATH_M`
+        back or turned :data:`PAIR_MAX_TURN_DEG` from ``pose``, else the oldest within
         :data:`PAIR_MAX_BACK` keyframes; None when none is stored on the segment."""
-        best: tuple[int, float] | None = None
+        best: tuple[int, int, float] | None = None
         for back in range(1, PAIR_MAX_BACK + 1):
             seq = self._own_seqs.get(index - back)
             path = self._path.between(index - back, index)
@@ -519,7 +570,7 @@ class LoopDetector:
                 pose[3:], np.asarray(other[3:], dtype=np.float64)) > PAIR_MAX_TURN_DEG)
             if turned and best is not None:
                 break  # the one before shares more of the view
-            best = (seq, path)
+            best = (back, seq, path)
             if path >= PAIR_PATH_M or turned:
                 break
         return best

@@ -87,8 +87,9 @@ class Bars:
         return self.odom_slack_m + self.odom_drift_per_m * path_m
 
 
-def bars(config: SolidConfig, learned: Learned | None = None) -> Bars:
-    """The thresholds of a configuration, and of what the run learned about itself.
+def bars(config: SolidConfig, learned: Learned | None = None, step: bool = False) -> Bars:
+    """The thresholds of a configuration, and of what the run learned about itself (``step``:
+    for a registered step).
 
     - ``known_place_overlap``: ``KNOWN_PLACE_SHARE`` of ``verify_min_overlap``, where the pose
       graph predicted the place.
@@ -101,7 +102,11 @@ def bars(config: SolidConfig, learned: Learned | None = None) -> Bars:
     - ``max_conflict``: ``verify_max_conflict``, or ``CONFLICT_OVER_RIGHT`` times the upper
       quartile of the conflict of the run's right alignments where that is more (a sensor or
       scene whose right poses show more conflict than the setting allows: mixed pixels,
-      porous vegetation, moving people).
+      porous vegetation, moving people). A registered step skips the single-object rule and
+      the search for a second minimum, so its bar rests on the pairs the odometry agreed with
+      only, not on those a triangle of registrations showed right: quickshack with KISS-ICP,
+      whose triangles set the bar from its 21st keyframe, put two steps 2.6-3 m off into the
+      graph (the sensor moved 5 cm; conflict 0.052 and 0.083) and a false loop followed.
     - ``odom_slack_m``, ``odom_drift_per_m``: the odometry check allows a floor plus a drift
       per metre of path: ``odom_check_drift`` until the run measured its odometry, then
       ``DRIFT_OVER_MEASURED`` times what it measured. The floor is ``odom_check_slack_m``
@@ -117,8 +122,9 @@ def bars(config: SolidConfig, learned: Learned | None = None) -> Bars:
             drift = DRIFT_OVER_MEASURED * learned.drift_per_m
         if learned.odometry_agrees and c.verify:
             slack = min(slack, PINNED_M)
-        if math.isfinite(learned.conflict_q75):
-            max_conflict = max(max_conflict, CONFLICT_OVER_RIGHT * learned.conflict_q75)
+        right_q75 = learned.agreed_conflict_q75 if step else learned.conflict_q75
+        if math.isfinite(right_q75):
+            max_conflict = max(max_conflict, CONFLICT_OVER_RIGHT * right_q75)
     return Bars(
         min_coarse_overlap=c.verify_min_coarse_overlap,
         min_overlap=c.verify_min_overlap,

@@ -391,6 +391,7 @@ class Verifier:
         self.config = config
         self.learned = Learned()
         self.bars: Bars = bars(config)
+        self.step_bars: Bars = bars(config, step=True)  # a registered step's (see bars)
         self.settings = registration_settings(config)
         self.tight_settings = registration_settings(config, tight=True)
         self._cache: OrderedDict[Hashable, Source] = OrderedDict()
@@ -399,11 +400,13 @@ class Verifier:
         """Use new thresholds (registration settings are read-only and unchanged)."""
         self.config = config
         self.bars = bars(config, self.learned)
+        self.step_bars = bars(config, self.learned, step=True)
 
     def learn(self, learned: Learned) -> None:
         """Use what the run learned about itself (:mod:`.calibration`) in the thresholds."""
         self.learned = learned
         self.bars = bars(self.config, learned)
+        self.step_bars = bars(self.config, learned, step=True)
 
     def is_tight(self, points: npt.ArrayLike) -> bool:
         """Whether a keyframe cloud (levelled, on the configuration's grid) shows a tight
@@ -419,6 +422,10 @@ class Verifier:
         """Prepare a keyframe cloud as query (target) of the registrations (``tight``: kept
         on the tight-space grid, see :meth:`is_tight`)."""
         return Query(points, self.tight_settings if tight else self.settings)
+
+    def query_of(self, cloud: KeyframeCloud) -> Query:
+        """A stored keyframe cloud prepared as query, on the grid it was kept on."""
+        return self.prepare(cloud.points, _same_grid(cloud.voxel, self.tight_settings))
 
     def _pair(self, query: Query, cloud: KeyframeCloud) -> tuple[Query, KeyframeCloud]:
         """The query and candidate on the grid they register on: the tight one when both were
@@ -480,14 +487,15 @@ class Verifier:
         src, co = coarse.source, coarse.alignment.coarse_overlap
         fine = align_fine(query, src, coarse.alignment.T_qm, query.settings)
         m = PoseMeasures(self, query, src, fine.T_qm, co, fine.converged, step, place)
-        verdict = judge(m, self.bars, 'fine')
+        limits = self.step_bars if step else self.bars
+        verdict = judge(m, limits, 'fine')
         if verdict.verified and not step:  # a step starts from the odometry: no street
             other = self._second_minimum(query, src, fine.T_qm, m.support)
             if other is not None:
                 m = PoseMeasures(self, query, src, other, co, True, step, place, True)
-                verdict = judge(m, self.bars, 'fine')
+                verdict = judge(m, limits, 'fine')
         if verdict.verified:
-            verdict = judge(m, self.bars, 'context')
+            verdict = judge(m, limits, 'context')
         if not verdict.verified:
             return Verification.refused(verdict, m.T_qm, m.fitness)
         return Verification(True, 'verified', m.T_mq, verdict.evidence, '',

@@ -276,6 +276,28 @@ def test_the_run_learns_its_right_alignments_and_its_odometrys_drift() -> None:
     assert 0.15 < learned.drift_per_m < 0.3
 
 
+def test_a_lost_odometry_still_teaches_right_alignments_by_closed_triangles() -> None:
+    """An odometry that turns 3 degrees too much at every keyframe disagrees with every pair
+    (none is right where it put it), but each keyframe's registration to its partner, the
+    partner's to its own and the keyframe's to that one close their triangle: the run learns
+    its right alignments all the same, and its odometry still does not count as agreeing."""
+    drive = _drive()
+    scans = range(100, 116)
+    good = [drive.odometry(i) for i in scans]
+    lost = [good[0]]
+    for before, after in zip(good, good[1:]):
+        lost.append(lost[-1] @ np.linalg.solve(before, after) @ _turn(3.0))
+    learned = _calibrated(lost, drive, scans).calibration.learned
+    assert learned.agreed == 0 and not learned.odometry_agrees
+    assert learned.right >= 10 and learned.conflict_q75 < CFG.verify_max_conflict
+
+
+def _turn(deg: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rot_z(math.radians(deg))
+    return T
+
+
 def test_a_relocalised_session_finds_the_saved_map_by_position(tmp_path: Path) -> None:
     """Once a new session is relocalised in a loaded map, the map's keyframes near it are
     candidates by position as its own are: a revisit the descriptor misses is still found."""

@@ -103,15 +103,21 @@ def test_what_the_run_learned_sets_the_conflict_bar_and_the_odometry_allowance()
     assert bars(CFG, Learned()) == BARS  # nothing learned yet: the settings
     # Right alignments with more conflict than the setting allows raise the bar (and the
     # single-object bar, half of it, to their upper quartile).
-    noisy = bars(CFG, Learned(30, 20, 0.04, 20, 0.05))
+    noisy = bars(CFG, Learned(30, 20, 0.04, 20, 0.05, agreed=20, agreed_conflict_q75=0.02))
     assert noisy.max_conflict == pytest.approx(0.08) and noisy.single_object_conflict == 0.04
+    # A registered step's bar rests on the pairs the odometry agreed with only.
+    assert bars(CFG, Learned(30, 20, 0.04, 20, 0.05, agreed=20, agreed_conflict_q75=0.02),
+                step=True).max_conflict == pytest.approx(0.04)
+    assert bars(CFG, Learned(30, 20, 0.04, 20, 0.05), step=True).max_conflict == \
+        CFG.verify_max_conflict  # none agreed: the setting
     # Most pairs agreed with the odometry: the floor is what a right loop is, and the drift
     # per metre twice what was measured.
     assert noisy.odom_allowed(100.0) == pytest.approx(PINNED_M + DRIFT_OVER_MEASURED * 5.0)
     # Clean right alignments never lower the conflict bar below the setting.
     assert bars(CFG, Learned(30, 20, 0.001, 20, 0.01)).max_conflict == CFG.verify_max_conflict
-    # An odometry that mostly disagreed keeps the setting's floor.
-    lost = bars(CFG, Learned(80, 12, 0.03, 5, math.nan))
+    # An odometry that mostly disagreed keeps the setting's floor, however many pairs a
+    # triangle showed right.
+    lost = bars(CFG, Learned(80, 60, 0.03, 5, math.nan, agreed=12))
     assert lost.odom_allowed(100.0) == pytest.approx(CFG.odom_check_slack_m
                                                      + CFG.odom_check_drift * 100.0)
     assert bars(CFG.replace(odom_check_drift=0.0)).odom_allowed(1.0) == math.inf
