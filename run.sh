@@ -33,7 +33,8 @@ case "$cmd" in
     ;;
   test)
     setup
-    SOLID_ROS_FULL_SUITE=1 exec "$venv/bin/python" -m pytest "$@"
+    # Two workers: ROS tests one after another on one, the rest beside them (test/conftest.py).
+    SOLID_ROS_FULL_SUITE=1 exec "$venv/bin/python" -m pytest -n 2 "$@"
     ;;
   *)
     echo "usage: ./run.sh demo [BAG] [options] | ./run.sh test [pytest args]" >&2

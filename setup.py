@@ -20,7 +20,7 @@ setup(
     install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'mcap', 'matplotlib',
                       'small-gicp', 'gtsam>=4.3'],
     extras_require={
-        'test': ['pytest', 'ruff', 'mypy', 'types-PyYAML'],
+        'test': ['pytest', 'pytest-xdist', 'ruff', 'mypy', 'types-PyYAML'],
         # ROS 2 Jazzy client libraries from PyPI, for machines without a ROS install.
         'ros-pypi': ['ros-jazzy-rclpy', 'ros-jazzy-common-interfaces',
                      'ros-jazzy-rmw-fastrtps-cpp', 'colcon-common-extensions'],

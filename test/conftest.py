@@ -9,11 +9,13 @@ fails instead. Plain ``pytest`` in another environment still skips.
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -46,6 +48,10 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
 
 
 _ROS_FILES = ('test_colcon.py', 'test_launch.py')
+# What a test file contains when it starts a ROS participant without being marked ros (a node
+# in-process or its executable); README and doc blocks may do so too.
+_PARTICIPANT_SIGNS = ('rclpy.init', 'SolidNode(', 'lib/solid_ros', 'solid_ros.ros.node')
+_PARTICIPANT_FILES = ('test_docs.py',)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -60,6 +66,38 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.data)
         if 'ros' in path.parts or path.name in _ROS_FILES or 'context' in names:
             item.add_marker(pytest.mark.ros)
+
+
+@functools.cache
+def _starts_participants(path: Path) -> bool:
+    """Whether the tests of this file start ROS participants (nodes, executables)."""
+    if 'ros' in path.parts or path.name in _ROS_FILES + _PARTICIPANT_FILES:
+        return True
+    try:
+        text = path.read_text(encoding='utf-8', errors='replace')
+    except OSError:
+        return False
+    return 'context: Context' in text or any(sign in text for sign in _PARTICIPANT_SIGNS)
+
+
+if importlib.util.find_spec('xdist') is not None:
+    def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+        """``./run.sh test`` runs two workers (pytest-xdist): each file's tests go to one
+        worker together (its module fixtures are built once), and every file that starts a
+        ROS participant to the same worker, one after another as without workers: several
+        use the default domain and the same topic names, and two at once hear each other.
+        (pytest-xdist's own ``--dist loadgroup`` does not group under pytest 9, which gtsam
+        4.3 requires.)"""
+        from xdist.scheduler import LoadFileScheduling
+
+        root = Path(str(config.rootpath))
+
+        class RosTogether(LoadFileScheduling):  # type: ignore[misc]
+            def _split_scope(self, nodeid: str) -> str:
+                file = nodeid.split('::', 1)[0]
+                return 'ros' if _starts_participants(root / file) else file
+
+        return RosTogether(config, log)
 
 
 @pytest.fixture(scope='session')
