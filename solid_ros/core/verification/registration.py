@@ -33,7 +33,7 @@ from solid_ros.core.geometry import rot_z
 
 __all__ = ['PLANE_THICKNESS_SCALE', 'STRUCTURE_MAX_NZ', 'Alignment', 'Query', 'RangeImage',
            'RegistrationSettings', 'Source', 'Support', 'align_coarse', 'align_fine', 'coarsened',
-           'for_peers', 'load_small_gicp']
+           'for_peers', 'load_small_gicp', 'settled']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -442,6 +442,8 @@ class Alignment:
             within half a coarse voxel of the query's after alignment; NaN for fine results.
         hypothesis: index of the start that won (coarse stage: the guesses first, then the
             heading hypotheses), else -1.
+        start_z: (coarse stage) the winning start's height, kept where the ground does not
+            observe it (:func:`settled`).
     """
 
     T_qm: FloatArray
@@ -449,11 +451,12 @@ class Alignment:
     iterations: int
     coarse_overlap: float = math.nan
     hypothesis: int = -1
+    start_z: float = 0.0
 
 
 def align_coarse(query: Query, source: Source, yaws: list[float],
                  settings: RegistrationSettings,
-                 guesses: Sequence[FloatArray] = ()) -> Alignment | None:
+                 guesses: Sequence[FloatArray] = (), settle: bool = True) -> Alignment | None:
     """Register the structure of ``source`` to the query from each start.
 
     The starts are the ``guesses`` (full poses, e.g. the pose graph's), then the heading
@@ -468,8 +471,9 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
         settings: registration settings.
         guesses: 4x4 ``T_mq`` (``p_match = T_mq p_query``) to start from before the yaws.
 
-    The kept pose's height is then set on the ground (:func:`_settle_height`): upright
-    structure does not pin it.
+    The kept pose's height is then set on the ground (:func:`settled`, unless ``settle`` is
+    False: the verifier settles only the alignments that go on to the fine stage, a quarter of
+    them on hku1): upright structure does not pin it.
 
     Returns:
         The start with the largest coarse overlap (``hypothesis`` is its index: guesses
@@ -496,13 +500,18 @@ def align_coarse(query: Query, source: Source, yaws: list[float],
         _, sq = query.coarse_tree.batch_nearest_neighbor_search(src_pts @ T[:3, :3].T + T[:3, 3])
         overlap = float(np.mean(np.asarray(sq) < (0.5 * settings.coarse_voxel) ** 2))
         if best is None or overlap > best.coarse_overlap:
-            best = Alignment(T, bool(res.converged), int(res.iterations), overlap, k)
+            best = Alignment(T, bool(res.converged), int(res.iterations), overlap, k,
+                             float(init[2, 3]))
         if overlap >= _GOOD_COARSE:
             break
-    if best is not None:
-        best = replace(best, T_qm=_settle_height(query, source, best.T_qm, settings,
-                                                 starts[best.hypothesis][2, 3]))
-    return best
+    return settled(query, source, best, settings) if settle and best is not None else best
+
+
+def settled(query: Query, source: Source, alignment: Alignment,
+            settings: RegistrationSettings) -> Alignment:
+    """A coarse alignment with its height set on the ground (:func:`_settle_height`)."""
+    return replace(alignment, T_qm=_settle_height(query, source, alignment.T_qm, settings,
+                                                  alignment.start_z))
 
 
 def _settle_height(query: Query, source: Source, T_qm: FloatArray,

@@ -73,6 +73,7 @@ from solid_ros.core.verification.registration import (
     align_coarse,
     align_fine,
     coarsened,
+    settled,
 )
 
 __all__ = ['TIGHT_GRID', 'CoarseResult', 'Place', 'PoseMeasures', 'Verification', 'Verifier',
@@ -460,7 +461,7 @@ class Verifier:
             return CoarseResult(key, None, None, self._refused(Measures(cloud=0.0)))
         query, cloud = self._pair(query, cloud)
         src = self._source(key, cloud, query.settings) if query.usable else None
-        al = (align_coarse(query, src, yaws, query.settings, guesses)
+        al = (align_coarse(query, src, yaws, query.settings, guesses, settle=False)
               if src is not None and src.usable else None)
         if al is None:
             return CoarseResult(key, None, None,
@@ -485,7 +486,8 @@ class Verifier:
         assert coarse.source is not None and coarse.alignment is not None
         query = query if coarse.query is None else coarse.query
         src, co = coarse.source, coarse.alignment.coarse_overlap
-        fine = align_fine(query, src, coarse.alignment.T_qm, query.settings)
+        start = settled(query, src, coarse.alignment, query.settings)
+        fine = align_fine(query, src, start.T_qm, query.settings)
         m = PoseMeasures(self, query, src, fine.T_qm, co, fine.converged, step, place)
         limits = self.step_bars if step else self.bars
         verdict = judge(m, limits, 'fine')
@@ -507,7 +509,8 @@ class Verifier:
         step)."""
         assert coarse.source is not None and coarse.alignment is not None
         query = query if coarse.query is None else coarse.query
-        fine = align_fine(query, coarse.source, coarse.alignment.T_qm, query.settings)
+        start = settled(query, coarse.source, coarse.alignment, query.settings)
+        fine = align_fine(query, coarse.source, start.T_qm, query.settings)
         return PoseMeasures(self, query, coarse.source, fine.T_qm,
                             coarse.alignment.coarse_overlap, fine.converged, step)
 
