@@ -24,8 +24,10 @@ cost on the same clouds in this process (``register_frame``, same settings). The
 runs again with ``--coarse`` (KISS-ICP voxel 1 m, max range 30 m). Last, the odometry's ATE
 on hku1 against the reference poses: the node's over the clouds it posed, and plain
 KISS-ICP's over every cloud and over those (a dropped cloud is a gap the odometry must
-bridge). ``--node-root`` runs the
-node of another checkout (e.g. main before the odometry stage; it reports no odometry_ms).
+bridge); and what verification did meanwhile (keyframes stored, dropped before
+verification, loops published: the odometry shares the 2 cores with it). ``--node-root``
+runs the node of another checkout (e.g. main before the odometry stage; it reports no
+odometry_ms).
 Timings on a shared 2-core machine are noisy: the load is printed with each part.
 """
 
@@ -210,12 +212,13 @@ class Probe:
         return int(value) if value.isdigit() else 0
 
     def _drain(self, sent: list[int]) -> None:
-        """Until no pose came for 3 s and nothing waits in the node's queues, plus
-        diagnostics."""
+        """Until no pose came for 3 s and nothing waits in the node's queues (verification's
+        too), plus diagnostics."""
         last, seen = time.monotonic(), -1
         while time.monotonic() - last < 3.0 or any(
                 self.value(k) not in ('0', 'n/a') for k in ('queue_length',
-                                                            'odometry_queue_length')):
+                                                            'odometry_queue_length',
+                                                            'verify_queue_length')):
             with self.lock:
                 n = len(self.posed.intersection(sent))
             if n != seen:
@@ -282,6 +285,10 @@ def bench_hku1(probe: Probe, args: argparse.Namespace
         print(f'hku1 (Livox Avia), {len(clouds)} clouds of {min(sizes)}-{max(sizes)} points '
               f'(median {int(np.median(sizes))}), 10 Hz:')
         _line('node', probe.publish(clouds, 10.0), probe)
+        print(f"  verification: {probe.value('database_size')} keyframes stored, "
+              f"{probe.value('verify_skipped')} dropped before verification, "
+              f"{probe.value('loop_candidates')} loops published, verify p50 "
+              f"{probe.value('verify_ms_p50')} ms")
         posed, poses = node_poses(probe)
     finally:
         stop_node(proc)
