@@ -25,11 +25,13 @@ from solid_ros.core.candidates.position import (
     GraphCandidate,
     GraphHint,
     MapCandidate,
+    PeerCandidate,
     guess_deviation,
     heading_tolerance_deg,
     knows_place,
     map_keyframes,
     near_keyframes,
+    peer_keyframes,
     position_sigma,
     view_keyframes,
 )
@@ -56,7 +58,9 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
                     map_seqs: Mapping[tuple[int, int], int] | None = None) -> list[Hit]:
     """The proposal's hits with the graph's guesses, then the keyframes near the query (or
     that saw its place) that the descriptor did not propose, then those of a loaded map near
-    it once the session is relocalised in that map (:func:`map_keyframes`).
+    it once the session is relocalised in that map (:func:`map_keyframes`), then those of
+    aligned peers placed near it (:func:`peer_keyframes`; the descriptor's peer hits get no
+    guess).
 
     Args:
         proposal: the keyframe's proposal (needs its odometry pose and keyframe cloud, else
@@ -96,6 +100,9 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     if mapped and map_seqs:
         out += own.map_hits(mapped, {(h.match.session, h.match.index) for h in out}, database,
                             map_seqs)
+    placed = peer_keyframes(hint, odom, cfg)
+    if placed:
+        out += own.peer_hits(placed, {(h.match.session, h.match.index) for h in out}, database)
     return out
 
 
@@ -206,6 +213,33 @@ class _Placing:
             out.append(Hit(Match(seq, c.index, c.session, stamp, distance), math.nan,
                            database.heading(seq).copy(), 'graph',
                            self._mount.level_pose(c.T_mq), True, self.tol, False, self.sigma))
+        return out
+
+    def peer_hits(self, found: list[PeerCandidate], taken: set[tuple[int, int]],
+                  database: DescriptorDatabase) -> list[Hit]:
+        """Hits of aligned peers' placed keyframes near the query not ``taken``: source
+        ``'graph'``, the placement's guess first, verified with the peers' hits (not
+        ``near``); the query's sigma grows by the placement's (its heading sigma acting over
+        the distance to the query's view centre) and the heading tolerance by
+        ``graph_candidate_sigmas`` of its heading sigma."""
+        proposal, cfg, out = self._proposal, self._cfg, []
+        view = 0.0 if self.centre is None else float(np.linalg.norm(self.centre))
+        for c in found:
+            seq = database.foreign_seq(c.session, c.index)
+            if (c.session, c.index) in taken or seq is None or not database.is_stored(seq):
+                continue
+            taken.add((c.session, c.index))
+            _, _, stamp = database.match_info(seq)
+            distance = math.nan if proposal.r_solid is None else cosine_distance(
+                proposal.r_solid, database.r_solid(seq))
+            lever = c.distance_m + view
+            sigma = math.sqrt(self.sigma ** 2 + c.sigma_m ** 2
+                              + (lever * c.yaw_sigma_rad) ** 2)
+            tol = min(180.0, self.tol + cfg.graph_candidate_sigmas
+                      * math.degrees(c.yaw_sigma_rad))
+            out.append(Hit(Match(seq, c.index, c.session, stamp, distance), math.nan,
+                           database.heading(seq).copy(), 'graph',
+                           self._mount.level_pose(c.T_mq), False, tol, False, sigma))
         return out
 
 

@@ -191,6 +191,9 @@ class LoopDetector:
         self._loaded = self.database.sessions() - {cfg.session_id}
         # A loaded map's keyframes by (session, index), for candidates by position in it.
         self._map_seqs = _loaded_seqs(self.database, self._loaded)
+        # Peers' keyframes' odometry poses as sent, by robot and index, while stored: where
+        # their keyframes are placed once aligned (solid_ros.core.candidates.peers).
+        self._peer_odom: dict[int, dict[int, FloatArray]] = {}
 
     @property
     def config(self) -> SolidConfig:
@@ -820,8 +823,19 @@ class LoopDetector:
             SolidError: bad stamp, shape or pose, or ``robot`` is this robot's own id.
         """
         vec = pose_to_vector(pose) if pose is not None else None
-        return self.database.add_foreign(int(robot), int(index), r_solid, heading,
-                                         check_stamp(stamp_ns), vec)
+        seq = self.database.add_foreign(int(robot), int(index), r_solid, heading,
+                                        check_stamp(stamp_ns), vec)
+        if vec is not None:
+            self._peer_odom.setdefault(int(robot), {})[int(index)] = vector_to_matrix(vec)
+            if sum(map(len, self._peer_odom.values())) > self.database.peer_size + 256:
+                for rb, poses in self._peer_odom.items():  # evicted from the peers' ring
+                    self._peer_odom[rb] = {i: T for i, T in poses.items()
+                                           if self.database.has_foreign(rb, i)}
+        return seq
+
+    def peer_odometry(self, robot: int) -> dict[int, FloatArray]:
+        """A peer's stored keyframes' odometry poses as sent (4x4), by index."""
+        return dict(self._peer_odom.get(int(robot), {}))
 
     def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
                                                       FloatArray | None]]:
@@ -858,6 +872,7 @@ class LoopDetector:
         """Forget every stored scan and cloud (the configuration stays)."""
         self.database = DescriptorDatabase(self._config)
         self._map_seqs = {}
+        self._peer_odom = {}
         self.clouds.clear()
         if self.verifier is not None:
             self.verifier.clear_cache()
