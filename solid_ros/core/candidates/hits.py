@@ -44,7 +44,8 @@ from solid_ros.core.geometry import rot_z, vector_to_matrix, yaw_of
 from solid_ros.core.results import Match
 
 __all__ = ['STRAY_FLOOR_M', 'extent', 'graph_stray', 'graph_turn', 'hit_knows_place',
-           'hypotheses_kept', 'shared_hits', 'view_centre', 'with_graph_hits']
+           'hypotheses_kept', 'placed_peer_hits', 'shared_hits', 'view_centre',
+           'with_graph_hits']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -58,9 +59,8 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
                     map_seqs: Mapping[tuple[int, int], int] | None = None) -> list[Hit]:
     """The proposal's hits with the graph's guesses, then the keyframes near the query (or
     that saw its place) that the descriptor did not propose, then those of a loaded map near
-    it once the session is relocalised in that map (:func:`map_keyframes`), then those of
-    aligned peers placed near it (:func:`peer_keyframes`; the descriptor's peer hits get no
-    guess).
+    it once the session is relocalised in that map (:func:`map_keyframes`). Aligned peers'
+    keyframes come apart (:func:`placed_peer_hits`); the descriptor's peer hits get no guess.
 
     Args:
         proposal: the keyframe's proposal (needs its odometry pose and keyframe cloud, else
@@ -100,10 +100,33 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     if mapped and map_seqs:
         out += own.map_hits(mapped, {(h.match.session, h.match.index) for h in out}, database,
                             map_seqs)
-    placed = peer_keyframes(hint, odom, cfg)
-    if placed:
-        out += own.peer_hits(placed, {(h.match.session, h.match.index) for h in out}, database)
     return out
+
+
+def placed_peer_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
+                     database: DescriptorDatabase, mount: Mount) -> list[Hit]:
+    """Aligned peers' keyframes placed near the query (:func:`peer_keyframes`) that are not
+    among its hits yet: source ``'graph'``, the placement's guess first. The detector asks
+    them only when the descriptor's peer hits verified nothing (each costs a fetched cloud
+    and a registration; on the simulated fleet, where the descriptor found every
+    inter-robot loop, they found none more).
+
+    Args:
+        proposal: the keyframe's proposal with its hits so far (none without its odometry
+            pose and keyframe cloud).
+        hint: the pose graph after the previous keyframe, with the peers' placement.
+        config: the detector's settings.
+        database: the descriptor database (the peers' descriptors and headings).
+        mount: the sensor's mount.
+    """
+    if proposal.pose is None or proposal.cloud_points is None or not len(hint.peers.keys):
+        return []
+    placed = peer_keyframes(hint, vector_to_matrix(proposal.pose), config)
+    if not placed:
+        return []
+    own = _Placing(proposal, hint, config, mount)
+    return own.peer_hits(placed, {(h.match.session, h.match.index) for h in proposal.hits},
+                         database)
 
 
 def shared_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,

@@ -15,6 +15,7 @@ from solid_ros.core.candidates.hits import (
     graph_turn,
     hit_knows_place,
     hypotheses_kept,
+    placed_peer_hits,
     view_centre,
     with_graph_hits,
 )
@@ -179,14 +180,17 @@ def _peer_scene(aligned: bool) -> tuple[list[Hit], np.ndarray, float]:
     query = pose(8.0, 1.0)
     cloud = np.array([[5.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, -1.0, 1.0]])
     prop = Proposal(30, 30 * SEC, 30, np.zeros(60), cloud, pose=matrix_to_vector(query))
-    hits = with_graph_hits(prop, hint, cfg, db, seqs, {}, Mount(cfg))
-    return hits, T_own_peer @ peer_map[6], float(placed.sigma_m[6])
+    prop.hits = with_graph_hits(prop, hint, cfg, db, seqs, {}, Mount(cfg))
+    assert not [h for h in prop.hits if h.match.session == 1]  # they come apart, asked later
+    return (placed_peer_hits(prop, hint, cfg, db, Mount(cfg)), T_own_peer @ peer_map[6],
+            float(placed.sigma_m[6]))
 
 
 def test_an_aligned_peers_keyframe_near_the_query_is_a_graph_hit_with_the_placed_guess() -> None:
     hits, P6, sigma6 = _peer_scene(aligned=True)
-    peer = [h for h in hits if h.match.session == 1]
-    assert [h.match.index for h in peer][0] == 6  # nearest first
+    assert hits and all(h.match.session == 1 for h in hits)
+    peer = hits
+    assert peer[0].match.index == 6  # nearest first
     h = peer[0]
     assert h.source == 'graph' and not h.near and not h.view
     query = np.eye(4)
@@ -198,7 +202,7 @@ def test_an_aligned_peers_keyframe_near_the_query_is_a_graph_hit_with_the_placed
 
 def test_an_unaligned_peer_gives_no_hit_by_position() -> None:
     hits, _, _ = _peer_scene(aligned=False)
-    assert not [h for h in hits if h.match.session == 1]
+    assert hits == []
 
 
 def test_a_peer_without_a_known_map_pose_or_covariance_is_not_placed() -> None:
