@@ -66,7 +66,7 @@ def place_peer(peer: int, transform: npt.ArrayLike, covariance: npt.ArrayLike | 
     M = np.array([map_poses[i] for i in j.tolist()], dtype=np.float64).reshape(-1, 4, 4)
     rel = np.linalg.solve(odo[jk], odo)  # inv(O_j) @ O_k
     T = np.asarray(transform, dtype=np.float64)
-    placed = np.einsum('ij,njk,nkl->nil', T, M, rel)
+    placed = T @ (M @ rel)
     # The peer's odometry path from j to k (its keyframes in index order).
     steps = np.linalg.norm(np.diff(odo[:, :3, 3], axis=0), axis=1)
     path = np.concatenate(([0.0], np.cumsum(steps)))
@@ -110,7 +110,7 @@ def _alignment_variances(cov: FloatArray, points: FloatArray) -> FloatArray:
     J[:, 0, 4], J[:, 0, 5] = z, -y  # -[p]x: rows (0, z, -y), (-z, 0, x), (y, -x, 0)
     J[:, 1, 3], J[:, 1, 5] = -z, x
     J[:, 2, 3], J[:, 2, 4] = y, -x
-    c = np.einsum('nij,jk,nlk->nil', J, cov, J)
+    c = (J @ cov) @ np.swapaxes(J, 1, 2)
     out: FloatArray = np.maximum(np.linalg.eigvalsh(0.5 * (c + np.swapaxes(c, 1, 2)))[:, -1],
                                  0.0)
     return out
