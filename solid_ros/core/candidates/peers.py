@@ -52,29 +52,24 @@ def place_peer(peer: int, transform: npt.ArrayLike, covariance: npt.ArrayLike | 
     if cov is None or cov.shape != (6, 6) or not bool(np.all(np.isfinite(cov))):
         return PeerPlacement()
     order = np.array(sorted(odom_poses), dtype=np.int64)
-    anchors = np.array([i for i in order.tolist() if i in map_poses], dtype=np.int64)
-    if not len(anchors):
+    at = np.flatnonzero([i in map_poses for i in order.tolist()])  # anchors' rows
+    if not len(at):
         return PeerPlacement()
     odo = np.array([odom_poses[i] for i in order.tolist()], dtype=np.float64).reshape(-1, 4, 4)
-    # Each keyframe's nearest anchor by index (the lower one on a tie).
-    right = np.clip(np.searchsorted(anchors, order), 0, len(anchors) - 1)
-    left = np.clip(right - 1, 0, len(anchors) - 1)
-    j = np.where(np.abs(anchors[left] - order) <= np.abs(anchors[right] - order),
-                 anchors[left], anchors[right])
-    pos = {i: k for k, i in enumerate(order.tolist())}
-    jk = np.array([pos[i] for i in j.tolist()])
-    M = np.array([map_poses[i] for i in j.tolist()], dtype=np.float64).reshape(-1, 4, 4)
-    rel = np.linalg.solve(odo[jk], odo)  # inv(O_j) @ O_k
-    T = np.asarray(transform, dtype=np.float64)
-    placed = T @ (M @ rel)
+    # Each keyframe's nearest anchor by index (the lower one on a tie), as a row of ``at``.
+    right = np.clip(np.searchsorted(order[at], order), 0, len(at) - 1)
+    left = np.clip(right - 1, 0, len(at) - 1)
+    a = np.where(np.abs(order[at[left]] - order) <= np.abs(order[at[right]] - order),
+                 left, right)
+    M = np.array([map_poses[i] for i in order[at].tolist()], dtype=np.float64)
+    rel = _inverse(odo[at])[a] @ odo  # inv(O_j) @ O_k
+    placed = (np.asarray(transform, dtype=np.float64) @ M)[a] @ rel
     # The peer's odometry path from j to k (its keyframes in index order).
     steps = np.linalg.norm(np.diff(odo[:, :3, 3], axis=0), axis=1)
     path = np.concatenate(([0.0], np.cumsum(steps)))
-    drift = np.abs(path - path[jk])
-    var_t, var_r = _drift_variances(drift, config)
+    var_t, var_r = _drift_variances(np.abs(path - path[at[a]]), config)
     lever = np.linalg.norm(rel[:, :3, 3], axis=1)
-    at = _alignment_variances(cov, M[:, :3, 3])
-    sigma = np.sqrt(at + var_t + lever ** 2 * var_r)
+    sigma = np.sqrt(_alignment_variances(cov, M[:, :3, 3])[a] + var_t + lever ** 2 * var_r)
     yaw = np.sqrt(max(float(cov[5, 5]), 0.0) + var_r)
     keys = np.stack([np.full(len(order), int(peer)), order], axis=1)
     return PeerPlacement.of(keys, placed, sigma, yaw)
@@ -89,6 +84,16 @@ def placed_peers(placements: list[PeerPlacement]) -> PeerPlacement:
                             np.concatenate([p.poses for p in kept]),
                             np.concatenate([p.sigma_m for p in kept]),
                             np.concatenate([p.yaw_sigma_rad for p in kept]))
+
+
+def _inverse(T: FloatArray) -> FloatArray:
+    """Inverses of rigid transforms (n, 4, 4)."""
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
+    out[:, :3, :3] = Rt
+    out[:, :3, 3] = -(Rt @ T[:, :3, 3, None])[:, :, 0]
+    out[:, 3, 3] = 1.0
+    return out
 
 
 def _drift_variances(path_m: FloatArray, config: SolidConfig) -> tuple[FloatArray, FloatArray]:
