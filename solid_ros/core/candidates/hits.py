@@ -25,11 +25,13 @@ from solid_ros.core.candidates.position import (
     GraphCandidate,
     GraphHint,
     MapCandidate,
+    PeerCandidate,
     guess_deviation,
     heading_tolerance_deg,
     knows_place,
     map_keyframes,
     near_keyframes,
+    peer_keyframes,
     position_sigma,
     view_keyframes,
 )
@@ -42,7 +44,8 @@ from solid_ros.core.geometry import rot_z, vector_to_matrix, yaw_of
 from solid_ros.core.results import Match
 
 __all__ = ['STRAY_FLOOR_M', 'extent', 'graph_stray', 'graph_turn', 'hit_knows_place',
-           'hypotheses_kept', 'shared_hits', 'view_centre', 'with_graph_hits']
+           'hypotheses_kept', 'placed_peer_hits', 'shared_hits', 'view_centre',
+           'with_graph_hits']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -56,7 +59,8 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
                     map_seqs: Mapping[tuple[int, int], int] | None = None) -> list[Hit]:
     """The proposal's hits with the graph's guesses, then the keyframes near the query (or
     that saw its place) that the descriptor did not propose, then those of a loaded map near
-    it once the session is relocalised in that map (:func:`map_keyframes`).
+    it once the session is relocalised in that map (:func:`map_keyframes`). Aligned peers'
+    keyframes come apart (:func:`placed_peer_hits`); the descriptor's peer hits get no guess.
 
     Args:
         proposal: the keyframe's proposal (needs its odometry pose and keyframe cloud, else
@@ -97,6 +101,32 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
         out += own.map_hits(mapped, {(h.match.session, h.match.index) for h in out}, database,
                             map_seqs)
     return out
+
+
+def placed_peer_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
+                     database: DescriptorDatabase, mount: Mount) -> list[Hit]:
+    """Aligned peers' keyframes placed near the query (:func:`peer_keyframes`) that are not
+    among its hits yet: source ``'graph'``, the placement's guess first. The detector asks
+    them only when the descriptor's peer hits verified nothing (each costs a fetched cloud
+    and a registration; on the simulated fleet, where the descriptor found every
+    inter-robot loop, they found none more).
+
+    Args:
+        proposal: the keyframe's proposal with its hits so far (none without its odometry
+            pose and keyframe cloud).
+        hint: the pose graph after the previous keyframe, with the peers' placement.
+        config: the detector's settings.
+        database: the descriptor database (the peers' descriptors and headings).
+        mount: the sensor's mount.
+    """
+    if proposal.pose is None or proposal.cloud_points is None or not len(hint.peers.keys):
+        return []
+    placed = peer_keyframes(hint, vector_to_matrix(proposal.pose), config)
+    if not placed:
+        return []
+    own = _Placing(proposal, hint, config, mount)
+    return own.peer_hits(placed, {(h.match.session, h.match.index) for h in proposal.hits},
+                         database)
 
 
 def shared_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
@@ -206,6 +236,33 @@ class _Placing:
             out.append(Hit(Match(seq, c.index, c.session, stamp, distance), math.nan,
                            database.heading(seq).copy(), 'graph',
                            self._mount.level_pose(c.T_mq), True, self.tol, False, self.sigma))
+        return out
+
+    def peer_hits(self, found: list[PeerCandidate], taken: set[tuple[int, int]],
+                  database: DescriptorDatabase) -> list[Hit]:
+        """Hits of aligned peers' placed keyframes near the query not ``taken``: source
+        ``'graph'``, the placement's guess first, verified with the peers' hits (not
+        ``near``); the query's sigma grows by the placement's (its heading sigma acting over
+        the distance to the query's view centre) and the heading tolerance by
+        ``graph_candidate_sigmas`` of its heading sigma."""
+        proposal, cfg, out = self._proposal, self._cfg, []
+        view = 0.0 if self.centre is None else float(np.linalg.norm(self.centre))
+        for c in found:
+            seq = database.foreign_seq(c.session, c.index)
+            if (c.session, c.index) in taken or seq is None or not database.is_stored(seq):
+                continue
+            taken.add((c.session, c.index))
+            _, _, stamp = database.match_info(seq)
+            distance = math.nan if proposal.r_solid is None else cosine_distance(
+                proposal.r_solid, database.r_solid(seq))
+            lever = c.distance_m + view
+            sigma = math.sqrt(self.sigma ** 2 + c.sigma_m ** 2
+                              + (lever * c.yaw_sigma_rad) ** 2)
+            tol = min(180.0, self.tol + cfg.graph_candidate_sigmas
+                      * math.degrees(c.yaw_sigma_rad))
+            out.append(Hit(Match(seq, c.index, c.session, stamp, distance), math.nan,
+                           database.heading(seq).copy(), 'graph',
+                           self._mount.level_pose(c.T_mq), False, tol, False, sigma))
         return out
 
 

@@ -79,9 +79,10 @@ from solid_ros.core.config import SolidConfig
 if TYPE_CHECKING:
     from solid_ros.core.results import Keyframe
 
-__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'MapCandidate', 'eligible',
-           'guess_deviation', 'heading_tolerance_deg', 'knows_place', 'map_keyframes',
-           'near_keyframes', 'position_sigma', 'search_radius', 'view_keyframes']
+__all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'MapCandidate', 'PeerCandidate',
+           'PeerPlacement', 'eligible', 'guess_deviation', 'heading_tolerance_deg',
+           'knows_place', 'map_keyframes', 'near_keyframes', 'peer_keyframes',
+           'position_sigma', 'search_radius', 'view_keyframes']
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -93,6 +94,35 @@ def _frozen(a: npt.ArrayLike, dtype: type, shape: tuple[int, ...]) -> npt.NDArra
     out: npt.NDArray[np.generic] = np.array(a, dtype=dtype).reshape(shape)
     out.flags.writeable = False  # shared between threads: nobody may change it
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class PeerPlacement:
+    """Aligned peers' keyframes placed in this robot's map
+    (:func:`solid_ros.core.candidates.peers.place_peer`; read-only arrays).
+
+    Attributes:
+        keys: (P, 2) ``(robot, index)`` of each placed keyframe.
+        poses: (P, 4, 4) its placed pose in this robot's map.
+        sigma_m: (P,) its position sigma there (the alignment's, and the peer's odometry drift
+            from the keyframe its map pose was known at), metres.
+        yaw_sigma_rad: (P,) its heading sigma, radians.
+    """
+
+    keys: IntArray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    poses: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    sigma_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    yaw_sigma_rad: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+    @classmethod
+    def of(cls, keys: npt.ArrayLike, poses: npt.ArrayLike, sigma_m: npt.ArrayLike,
+           yaw_sigma_rad: npt.ArrayLike) -> PeerPlacement:
+        """A placement holding read-only copies of the arrays."""
+        n = len(np.asarray(sigma_m).reshape(-1))
+        return cls(_frozen(keys, np.int64, (n, 2)),  # type: ignore[arg-type]
+                   _frozen(poses, np.float64, (n, 4, 4)),  # type: ignore[arg-type]
+                   _frozen(sigma_m, np.float64, (n,)),  # type: ignore[arg-type]
+                   _frozen(yaw_sigma_rad, np.float64, (n,)))  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,6 +143,8 @@ class GraphHint:
         map_keys: (M, 2) ``(session, index)`` of a loaded map's keyframes, once the session
             is relocalised in that map (empty before).
         map_poses: (M, 4, 4) their fixed poses in the map frame (this session's map frame).
+        peers: aligned peers' keyframes placed in this session's map frame (empty before a
+            peer is aligned).
     """
 
     indices: IntArray
@@ -124,6 +156,7 @@ class GraphHint:
     relative: Callable[[int], FloatArray | None] | None = None
     map_keys: IntArray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     map_poses: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    peers: PeerPlacement = field(default_factory=PeerPlacement)
 
     @classmethod
     def of(cls, indices: npt.ArrayLike, stamps_ns: npt.ArrayLike, poses: npt.ArrayLike,
@@ -442,3 +475,47 @@ def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
     if bool(np.any(ok & np.isin(hint.indices, np.asarray(near, dtype=np.int64)))):
         return []
     return _nearest(hint, ok, dist, predicted, config.graph_candidates)
+
+
+@dataclass(frozen=True)
+class PeerCandidate:
+    """An aligned peer's keyframe near the query in this robot's map.
+
+    Attributes:
+        session: the peer's robot id.
+        index: the keyframe's index in that robot's session.
+        distance_m: its distance from the query's predicted position, metres.
+        T_mq: the relative pose of the placement (query sensor in the keyframe's sensor frame).
+        sigma_m: the placement's position sigma, metres (:class:`PeerPlacement`).
+        yaw_sigma_rad: its heading sigma, radians.
+    """
+
+    session: int
+    index: int
+    distance_m: float
+    T_mq: FloatArray
+    sigma_m: float
+    yaw_sigma_rad: float
+
+
+def peer_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike,
+                   config: SolidConfig) -> list[PeerCandidate]:
+    """Aligned peers' placed keyframes (:attr:`GraphHint.peers`) near the query's predicted
+    pose, nearest first, at most ``graph_candidates``: within the radius of
+    :func:`near_keyframes` with the placement's sigma added to the query's (capped at
+    ``graph_candidate_max_radius_m``)."""
+    peers = hint.peers
+    if config.graph_candidates <= 0 or len(peers.keys) == 0 or len(hint.indices) == 0:
+        return []
+    odom = np.asarray(odom_pose, dtype=np.float64)
+    predicted = hint.predict(odom)
+    own = position_sigma(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom))
+    dist = np.linalg.norm(peers.poses[:, :3, 3] - predicted[:3, 3], axis=1)
+    sigma = np.sqrt(own ** 2 + peers.sigma_m ** 2)
+    radius = np.minimum(config.graph_candidate_max_radius_m,
+                        config.graph_candidate_radius_m + config.graph_candidate_sigmas * sigma)
+    picked = np.flatnonzero(dist <= radius)
+    picked = picked[np.argsort(dist[picked], kind='stable')][:config.graph_candidates]
+    return [PeerCandidate(int(peers.keys[k, 0]), int(peers.keys[k, 1]), float(dist[k]),
+                          np.linalg.solve(peers.poses[k], predicted), float(peers.sigma_m[k]),
+                          float(peers.yaw_sigma_rad[k])) for k in picked]

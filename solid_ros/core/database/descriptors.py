@@ -299,6 +299,12 @@ class DescriptorDatabase:
         """Whether a peer's scan ``index`` of ``session`` is stored (a repeat is refused)."""
         return (int(session), int(index)) in self._peer_keys
 
+    def foreign_seq(self, session: int, index: int) -> int | None:
+        """Sequence number of a peer's stored scan ``index`` of ``session`` (None: not
+        stored)."""
+        seq = self._peer_keys.get((int(session), int(index)))
+        return None if seq is None else PEER_SEQ_BASE + seq
+
     def _peer_ring(self) -> DescriptorDatabase:
         if self._peers is None:
             cap = self.config.peer_capacity

@@ -41,7 +41,7 @@ from them and the peers' keyframe poses (:mod:`solid_ros.core.backend.alignment`
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -50,6 +50,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.backend.alignment import AlignmentSettings, FleetAlignment
+from solid_ros.core.candidates.peers import place_peer, placed_peers
 from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Proposal
 from solid_ros.core.config import SolidConfig
@@ -113,6 +114,8 @@ class LoopClosure:
         self.graph = graph
         self._hint: GraphHint | None = None
         self.fleet: FleetAlignment | None = None
+        # Each peer's keyframe poses in its map, as the last align() had them.
+        self._peer_maps: dict[int, dict[int, FloatArray]] = {}
         self._new_fleet()
 
     def _new_fleet(self) -> None:
@@ -209,11 +212,24 @@ class LoopClosure:
         if self.fleet is not None:
             for loop in result.loops:
                 self.fleet.add(loop)
-        self._hint = GraphHint.from_keyframes(
+        self._hint = self._with_peers(GraphHint.from_keyframes(
             self.graph.keyframes(), state.correction, state.covariance,
             partial(self.graph.relative_covariance, index_b=state.index),
-            self.graph.placed_map())
+            self.graph.placed_map()))
         return Step(result, odom, state, self._hint)
+
+    def _with_peers(self, hint: GraphHint) -> GraphHint:
+        """The hint with the aligned peers' keyframes placed in this robot's map
+        (:mod:`solid_ros.core.candidates.peers`), from their map poses of the last
+        :meth:`align` and their odometry poses as sent."""
+        if self.fleet is None:
+            return hint
+        placements = [place_peer(st.peer, st.transform, st.covariance,
+                                 self._peer_maps.get(st.peer, {}),
+                                 self.detector.peer_odometry(st.peer), self.config)
+                      for st in self.fleet.states()
+                      if st.aligned and st.transform is not None and st.peer in self._peer_maps]
+        return replace(hint, peers=placed_peers(placements)) if placements else hint
 
     # -- other robots ------------------------------------------------------------------------
 
@@ -230,6 +246,7 @@ class LoopClosure:
         to log."""
         if self.fleet is None or self.graph is None:
             return []
+        self._peer_maps = {int(p): dict(poses) for p, poses in peers.items()}
         return self.fleet.solve(self.graph.poses(), peers, paths)
 
     # -- the session -------------------------------------------------------------------------
@@ -255,6 +272,7 @@ class LoopClosure:
         else:
             self.detector = detector
         self._hint = None
+        self._peer_maps = {}
         if self.graph is not None:
             self.graph.reset()
         self._new_fleet()  # its loops name keyframes that are gone

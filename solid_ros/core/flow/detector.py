@@ -80,6 +80,7 @@ import numpy.typing as npt
 from solid_ros.core.candidates.covisibility import StructureIndex, coarse_structure
 from solid_ros.core.candidates.hits import (
     hypotheses_kept,
+    placed_peer_hits,
     shared_hits,
     view_centre,
     with_graph_hits,
@@ -191,6 +192,9 @@ class LoopDetector:
         self._loaded = self.database.sessions() - {cfg.session_id}
         # A loaded map's keyframes by (session, index), for candidates by position in it.
         self._map_seqs = _loaded_seqs(self.database, self._loaded)
+        # Peers' keyframes' odometry poses as sent, by robot and index, while stored: where
+        # their keyframes are placed once aligned (solid_ros.core.candidates.peers).
+        self._peer_odom: dict[int, dict[int, FloatArray]] = {}
 
     @property
     def config(self) -> SolidConfig:
@@ -439,18 +443,20 @@ class LoopDetector:
             if cfg.backend and cfg.graph_candidates > 0:  # only the back end's hint uses it
                 structure = self._structure_of(proposal.query)
         more: Callable[[], list[Hit]] | None = None
+        placed: Callable[[], list[Hit]] | None = None
         if hint is not None and cfg.graph_candidates > 0 and self.verifier is not None:
             proposal.hits = with_graph_hits(proposal, hint, cfg, self.database, self._own_seqs,
                                             self._views, self._mount, self._map_seqs)
             if structure is not None:
                 more = partial(shared_hits, proposal, hint, cfg, self.database,
                                self._own_seqs, self._mount, self._structures, structure)
+            placed = partial(placed_peer_hits, proposal, hint, cfg, self.database, self._mount)
         gap_blocked = bool(cfg.min_loop_gap and self._last_loop_query is not None
                            and proposal.query_index - self._last_loop_query < cfg.min_loop_gap)
         if self.verifier is None:
             attempts = self._accept_by_descriptor(proposal, gap_blocked)
         else:
-            attempts = self._accept_by_registration(proposal, gap_blocked, more)
+            attempts = self._accept_by_registration(proposal, gap_blocked, more, placed)
         if structure is not None:  # after its own search: it shares all with itself
             self._structures.add(proposal.query_index, structure)
         taken: list[LoopCandidate] = []
@@ -674,10 +680,13 @@ class LoopDetector:
         return out
 
     def _accept_by_registration(self, proposal: Proposal, gap_blocked: bool,
-                                more: Callable[[], list[Hit]] | None = None
+                                more: Callable[[], list[Hit]] | None = None,
+                                placed: Callable[[], list[Hit]] | None = None
                                 ) -> list[LoopCandidate]:
         """Verify the proposal's hits group by group until ``max_candidates`` places are
-        verified; ``more``: hits to try last, asked only if it comes to them."""
+        verified; ``more``: hits to try last, asked only if it comes to them; ``placed``:
+        aligned peers' keyframes by position, asked only when the peers' hits verified
+        nothing."""
         verifier = self.verifier
         assert verifier is not None
         clouds, fetched = self._candidate_clouds(proposal, gap_blocked)
@@ -706,9 +715,15 @@ class LoopDetector:
             self._register(proposal, query, group, clouds, results, yaws, verified)
         # Peers' places have a budget of their own: the graph's near keyframes verify first
         # and would otherwise leave none to the inter-robot loops a fleet is placed by.
+        found: list[Match] = []
         if not gap_blocked and any(peer):
             self._register(proposal, query, [i for i in range(len(hits)) if peer[i]], clouds,
-                           results, yaws, [])
+                           results, yaws, found)
+        if placed is not None and not gap_blocked and not found:
+            start = len(hits)
+            hits = self._append_hits(proposal, placed(), clouds, results)
+            self._register(proposal, query, list(range(start, len(hits))), clouds, results,
+                           yaws, found)
         if more is not None and not gap_blocked and len(verified) < self._config.max_candidates:
             extra = more()
             start = len(hits)
@@ -734,24 +749,44 @@ class LoopDetector:
                           ) -> tuple[list[KeyframeCloud | None], dict[int, Verification]]:
         """Each hit's stored cloud (a peer's fetched when needed), and the verdicts of peer
         clouds that did not come."""
-        cfg = self._config
         clouds: list[KeyframeCloud | None] = []
         fetched: dict[int, Verification] = {}
         for i, h in enumerate(proposal.hits):
-            cloud = self.clouds.get(h.match.seq)
-            if (cloud is None and self.fetch_cloud is not None and not gap_blocked
-                    and h.match.session != cfg.session_id
-                    and h.match.session not in self._loaded_sessions()):
-                got = self.fetch_cloud(h.match.session, h.match.index, h.match.stamp_ns)
-                if isinstance(got, KeyframeCloud):
-                    self.clouds.put(h.match.seq, got)
-                    cloud = got
-                else:
-                    fetched[i] = Verification(False, got, np.eye(4))
+            cloud, missing = self._cloud_of(h, gap_blocked)
+            if missing is not None:
+                fetched[i] = missing
             clouds.append(cloud)
         if proposal.cloud_points is None:  # process_descriptor: nothing to register
             clouds = [None] * len(clouds)
         return clouds, fetched
+
+    def _cloud_of(self, hit: Hit, gap_blocked: bool
+                  ) -> tuple[KeyframeCloud | None, Verification | None]:
+        """A hit's stored cloud (a peer's fetched when needed), or the verdict of a peer
+        cloud that did not come."""
+        cloud = self.clouds.get(hit.match.seq)
+        if (cloud is None and self.fetch_cloud is not None and not gap_blocked
+                and hit.match.session != self._config.session_id
+                and hit.match.session not in self._loaded_sessions()):
+            got = self.fetch_cloud(hit.match.session, hit.match.index, hit.match.stamp_ns)
+            if not isinstance(got, KeyframeCloud):
+                return None, Verification(False, got, np.eye(4))
+            self.clouds.put(hit.match.seq, got)
+            cloud = got
+        return cloud, None
+
+    def _append_hits(self, proposal: Proposal, extra: list[Hit],
+                     clouds: list[KeyframeCloud | None],
+                     results: dict[int, Verification]) -> list[Hit]:
+        """``extra`` appended to the proposal's hits, their clouds (fetched) to ``clouds``
+        and the verdicts of those that did not come to ``results``; the hits."""
+        for h in extra:
+            cloud, missing = self._cloud_of(h, False)
+            if missing is not None:
+                results[len(clouds)] = missing
+            clouds.append(cloud)
+        proposal.hits = proposal.hits + extra
+        return proposal.hits
 
     def _register(self, proposal: Proposal, query: Query, group: list[int],
                   clouds: list[KeyframeCloud | None], results: dict[int, Verification],
@@ -820,8 +855,19 @@ class LoopDetector:
             SolidError: bad stamp, shape or pose, or ``robot`` is this robot's own id.
         """
         vec = pose_to_vector(pose) if pose is not None else None
-        return self.database.add_foreign(int(robot), int(index), r_solid, heading,
-                                         check_stamp(stamp_ns), vec)
+        seq = self.database.add_foreign(int(robot), int(index), r_solid, heading,
+                                        check_stamp(stamp_ns), vec)
+        if vec is not None:
+            self._peer_odom.setdefault(int(robot), {})[int(index)] = vector_to_matrix(vec)
+            if sum(map(len, self._peer_odom.values())) > self.database.peer_size + 256:
+                for rb, poses in self._peer_odom.items():  # evicted from the peers' ring
+                    self._peer_odom[rb] = {i: T for i, T in poses.items()
+                                           if self.database.has_foreign(rb, i)}
+        return seq
+
+    def peer_odometry(self, robot: int) -> dict[int, FloatArray]:
+        """A peer's stored keyframes' odometry poses as sent (4x4), by index."""
+        return dict(self._peer_odom.get(int(robot), {}))
 
     def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
                                                       FloatArray | None]]:
@@ -858,6 +904,7 @@ class LoopDetector:
         """Forget every stored scan and cloud (the configuration stays)."""
         self.database = DescriptorDatabase(self._config)
         self._map_seqs = {}
+        self._peer_odom = {}
         self.clouds.clear()
         if self.verifier is not None:
             self.verifier.clear_cache()

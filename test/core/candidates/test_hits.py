@@ -1,4 +1,5 @@
-"""The pose graph's share of a keyframe's candidates: the known place, the turn check, views."""
+"""The pose graph's share of a keyframe's candidates: the known place, the turn check, views,
+aligned peers' keyframes by position."""
 
 from __future__ import annotations
 
@@ -14,12 +15,17 @@ from solid_ros.core.candidates.hits import (
     graph_turn,
     hit_knows_place,
     hypotheses_kept,
+    placed_peer_hits,
     view_centre,
+    with_graph_hits,
 )
-from solid_ros.core.candidates.proposal import Hit
+from solid_ros.core.candidates.peers import place_peer
+from solid_ros.core.candidates.position import GraphHint
+from solid_ros.core.candidates.proposal import Hit, Proposal
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.database.descriptors import DescriptorDatabase
 from solid_ros.core.descriptor.mount import Mount
-from solid_ros.core.geometry import rot_z
+from solid_ros.core.geometry import matrix_to_vector, rot_z
 from solid_ros.core.results import Match
 
 SEC = 1_000_000_000
@@ -138,3 +144,70 @@ def test_view_centre_and_extent_of_a_cloud() -> None:
     cloud = np.array([[10.0, -1.0, 0.0], [12.0, 1.0, 0.0], [10.0, 1.0, 0.0], [12.0, -1.0, 0.0]])
     np.testing.assert_allclose(view_centre(cloud, Mount(SolidConfig())), [11.0, 0.0, 0.0])
     assert extent(cloud) == math.sqrt(2.0)  # every point 1 m off in x and in y
+
+
+def _peer_scene(aligned: bool) -> tuple[list[Hit], np.ndarray, float]:
+    """Robot 0 drove keyframes 0..29 along x; peer robot 1's keyframes 0..9 stand along y in
+    its own map (its odometry in another frame still), its map put 90 deg turned and 20 m
+    off in ours; the query stands near the peer's keyframe 6 (map poses known for 0..4
+    only: 6 is placed from 4 by the odometry). Returns the hits, keyframe 6's placement and
+    its sigma."""
+    def pose(x: float, y: float, yaw: float = 0.0) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = rot_z(yaw)
+        T[:2, 3] = (x, y)
+        return T
+
+    cfg = SolidConfig(session_id=0, exclude_recent_sec=0.0)
+    db = DescriptorDatabase(cfg)
+    rng = np.random.default_rng(0)
+    own = np.array([pose(float(i), 0.0) for i in range(30)])
+    seqs = {i: db.add(rng.random(40), rng.random(60), i * SEC) for i in range(30)}
+    odom_frame = pose(5.0, -3.0, 0.7)  # the peer's odometry frame in its map
+    peer_map = {k: pose(0.0, 2.0 * k, math.pi / 2) for k in range(10)}
+    peer_odom = {k: np.linalg.solve(odom_frame, peer_map[k]) for k in range(10)}
+    for k in range(10):
+        db.add_foreign(1, k, rng.random(40), rng.random(60), k * SEC,
+                       matrix_to_vector(peer_odom[k]))
+    T_own_peer = pose(20.0, 0.0, math.pi / 2)
+    placed = place_peer(1, T_own_peer, np.diag([1e-4] * 3 + [1e-6] * 3),
+                        {k: peer_map[k] for k in range(5)}, peer_odom, cfg)
+    hint = GraphHint.of(np.arange(30), np.arange(30) * SEC, own, own, np.eye(4),
+                        np.diag([1e-4] * 3 + [1e-6] * 3))
+    if aligned:
+        hint = replace(hint, peers=placed)
+    # Keyframe 6 of the peer: (0, 12) in its map, (8, 0) in ours; the query 1 m beside it.
+    query = pose(8.0, 1.0)
+    cloud = np.array([[5.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, -1.0, 1.0]])
+    prop = Proposal(30, 30 * SEC, 30, np.zeros(60), cloud, pose=matrix_to_vector(query))
+    prop.hits = with_graph_hits(prop, hint, cfg, db, seqs, {}, Mount(cfg))
+    assert not [h for h in prop.hits if h.match.session == 1]  # they come apart, asked later
+    return (placed_peer_hits(prop, hint, cfg, db, Mount(cfg)), T_own_peer @ peer_map[6],
+            float(placed.sigma_m[6]))
+
+
+def test_an_aligned_peers_keyframe_near_the_query_is_a_graph_hit_with_the_placed_guess() -> None:
+    hits, P6, sigma6 = _peer_scene(aligned=True)
+    assert hits and all(h.match.session == 1 for h in hits)
+    peer = hits
+    assert peer[0].match.index == 6  # nearest first
+    h = peer[0]
+    assert h.source == 'graph' and not h.near and not h.view
+    query = np.eye(4)
+    query[:2, 3] = (8.0, 1.0)
+    np.testing.assert_allclose(h.guess, np.linalg.solve(P6, query), atol=1e-9)
+    # Its sigma holds the placement's (alignment and the peer's drift over 2 keyframes).
+    assert 0.0 < sigma6 < h.sigma_m < 1.0 and h.heading_tol_deg < 180.0
+
+
+def test_an_unaligned_peer_gives_no_hit_by_position() -> None:
+    hits, _, _ = _peer_scene(aligned=False)
+    assert hits == []
+
+
+def test_a_peer_without_a_known_map_pose_or_covariance_is_not_placed() -> None:
+
+    odom = {k: np.eye(4) for k in range(3)}
+    assert not len(place_peer(1, np.eye(4), None, {0: np.eye(4)}, odom, SolidConfig()).keys)
+    assert not len(place_peer(1, np.eye(4), np.eye(6), {7: np.eye(4)}, odom,
+                              SolidConfig()).keys)
