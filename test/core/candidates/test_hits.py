@@ -189,9 +189,8 @@ def _peer_scene(aligned: bool) -> tuple[list[Hit], np.ndarray, float]:
 def test_an_aligned_peers_keyframe_near_the_query_is_a_graph_hit_with_the_placed_guess() -> None:
     hits, P6, sigma6 = _peer_scene(aligned=True)
     assert hits and all(h.match.session == 1 for h in hits)
-    peer = hits
-    assert peer[0].match.index == 6  # nearest first
-    h = peer[0]
+    assert hits[0].match.index == 6  # nearest first
+    h = hits[0]
     assert h.source == 'graph' and not h.near and not h.view
     query = np.eye(4)
     query[:2, 3] = (8.0, 1.0)
@@ -206,7 +205,6 @@ def test_an_unaligned_peer_gives_no_hit_by_position() -> None:
 
 
 def test_a_peer_without_a_known_map_pose_or_covariance_is_not_placed() -> None:
-
     odom = {k: np.eye(4) for k in range(3)}
     assert not len(place_peer(1, np.eye(4), None, {0: np.eye(4)}, odom, SolidConfig()).keys)
     assert not len(place_peer(1, np.eye(4), np.eye(6), {7: np.eye(4)}, odom,
