@@ -191,7 +191,8 @@ class LoopClosure:
 
     def verify(self, proposal: Proposal) -> ScanResult:
         """The proposal verified with the graph's hint (keyframe order); its loops are
-        final, its registered step not yet made (:meth:`commit`)."""
+        final, its registered step handed on by :meth:`commit` (registered here when the
+        graph predicts the query from it, see ``LoopDetector._registered_hint``)."""
         return self.detector.verify(proposal, self._hint, step=False)
 
     def commit(self, proposal: Proposal, result: ScanResult,

@@ -551,3 +551,36 @@ def test_a_finer_grid_takes_a_smaller_stray_floor() -> None:
     # A coarser grid (hdl64.yaml, 0.75 m) keeps the floor.
     assert graph_stray(hit, centre, SolidConfig(), np.eye(4), 0.75)[1] == STRAY_FLOOR_M
 
+
+
+def test_a_registered_step_places_the_query_where_a_runaway_odometry_did_not() -> None:
+    """With a scan-only odometry's steps registered, the graph's prediction of the query (its
+    candidates' guesses, the graph rules' reference) follows the registered step, not the
+    odometry's runaway one; verify() hands that step on, registered once."""
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    from solid_ros.core.candidates.position import GraphHint
+    from solid_ros.core.geometry import matrix_to_vector, rot_z
+    from solid_ros.sim.drive import Drive, DriveConfig
+
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
+    first, second = drive.scan(10), drive.scan(11)
+    ran_away = second.pose.copy()
+    ran_away[:3, :3] = second.pose[:3, :3] @ rot_z(math.radians(3.0))
+    ran_away[:3, 3] += second.pose[:3, :3] @ np.array([0.3, 0.5, 0.0])
+    for mode in ('on', 'off'):
+        det = LoopDetector(SolidConfig(verify_voxel_size=0.5, verify_coarse_voxel_size=1.5,
+                                       backend_step_registration=mode))
+        det.process(first.points, SEC, matrix_to_vector(first.pose))
+        proposal = det.propose(second.points, 2 * SEC, matrix_to_vector(ran_away))
+        assert proposal is not None
+        proposal.query = det.verifier.prepare(proposal.cloud_points)  # as verify() does
+        hint = GraphHint.of([0], [SEC], first.pose[None], first.pose[None], np.eye(4),
+                            np.eye(6) * 1e-4)
+        used = det._registered_hint(proposal, hint)
+        off = np.linalg.norm(used.predict(ran_away)[:3, 3] - second.pose[:3, 3])
+        if mode == 'off':
+            assert used is hint and off > 0.5  # the runaway: 0.58 m
+            continue
+        assert off < 0.1
+        result = det.with_step(det.verify(proposal, step=False), proposal)
+        assert result.step is not None and result.step.verified and result.times.step > 0.0
