@@ -217,6 +217,18 @@ class _Placing:
                            kind == 'shared'))
         return out
 
+    def _match(self, session: int, index: int, seq: int | None, taken: set[tuple[int, int]],
+               database: DescriptorDatabase) -> Match | None:
+        """The match of another session's stored keyframe not ``taken`` (which grows), with
+        its descriptor distance to the query; None when taken or not stored."""
+        if (session, index) in taken or seq is None or not database.is_stored(seq):
+            return None
+        taken.add((session, index))
+        _, _, stamp = database.match_info(seq)
+        r_solid = self._proposal.r_solid
+        distance = (math.nan if r_solid is None
+                    else cosine_distance(r_solid, database.r_solid(seq)))
+        return Match(seq, index, session, stamp, distance)
 
     def map_hits(self, found: list[MapCandidate], taken: set[tuple[int, int]],
                  database: DescriptorDatabase, map_seqs: Mapping[tuple[int, int], int]
@@ -224,18 +236,14 @@ class _Placing:
         """Hits of the loaded map's keyframes near the query not ``taken``: source
         ``'graph'``, the graph's guess first, the query's own sigma (the graph holds no joint
         marginal with the fixed map)."""
-        proposal, out = self._proposal, []
+        out = []
         for c in found:
-            seq = map_seqs.get((c.session, c.index))
-            if (c.session, c.index) in taken or seq is None or not database.is_stored(seq):
-                continue
-            taken.add((c.session, c.index))
-            _, _, stamp = database.match_info(seq)
-            distance = math.nan if proposal.r_solid is None else cosine_distance(
-                proposal.r_solid, database.r_solid(seq))
-            out.append(Hit(Match(seq, c.index, c.session, stamp, distance), math.nan,
-                           database.heading(seq).copy(), 'graph',
-                           self._mount.level_pose(c.T_mq), True, self.tol, False, self.sigma))
+            match = self._match(c.session, c.index, map_seqs.get((c.session, c.index)), taken,
+                                database)
+            if match is not None:
+                out.append(Hit(match, math.nan, database.heading(match.seq).copy(), 'graph',
+                               self._mount.level_pose(c.T_mq), True, self.tol, False,
+                               self.sigma))
         return out
 
     def peer_hits(self, found: list[PeerCandidate], taken: set[tuple[int, int]],
@@ -245,23 +253,19 @@ class _Placing:
         ``near``); the query's sigma grows by the placement's (its heading sigma acting over
         the distance to the query's view centre) and the heading tolerance by
         ``graph_candidate_sigmas`` of its heading sigma."""
-        proposal, cfg, out = self._proposal, self._cfg, []
+        cfg, out = self._cfg, []
         view = 0.0 if self.centre is None else float(np.linalg.norm(self.centre))
         for c in found:
-            seq = database.foreign_seq(c.session, c.index)
-            if (c.session, c.index) in taken or seq is None or not database.is_stored(seq):
+            match = self._match(c.session, c.index, database.foreign_seq(c.session, c.index),
+                                taken, database)
+            if match is None:
                 continue
-            taken.add((c.session, c.index))
-            _, _, stamp = database.match_info(seq)
-            distance = math.nan if proposal.r_solid is None else cosine_distance(
-                proposal.r_solid, database.r_solid(seq))
             lever = c.distance_m + view
             sigma = math.sqrt(self.sigma ** 2 + c.sigma_m ** 2
                               + (lever * c.yaw_sigma_rad) ** 2)
             tol = min(180.0, self.tol + cfg.graph_candidate_sigmas
                       * math.degrees(c.yaw_sigma_rad))
-            out.append(Hit(Match(seq, c.index, c.session, stamp, distance), math.nan,
-                           database.heading(seq).copy(), 'graph',
+            out.append(Hit(match, math.nan, database.heading(match.seq).copy(), 'graph',
                            self._mount.level_pose(c.T_mq), False, tol, False, sigma))
         return out
 
