@@ -68,10 +68,12 @@ class Run:
         ate_odometry: odometry ATE, metres.
         ate_corrected: corrected ATE, metres.
         keyframes: keyframes in the run.
+        loops: loops published, and of them false (beyond 1 m / 3 deg of the reference).
     """
 
     resets: list[tuple[int, str]] = field(default_factory=list)
     segments: list[tuple[int, int]] = field(default_factory=list)
+    loops: tuple[int, int] = (0, 0)
     ties: list[tuple[list[int], int, int, float, float]] = field(default_factory=list)
     stamps: dict[int, float] = field(default_factory=dict)
     ate_odometry: float = float('nan')
@@ -114,6 +116,7 @@ def replay_run(clouds: list[FloatArray], stamps: list[int], ref: FloatArray,
     traj = r.report['trajectory']
     run.ate_odometry = traj['odometry']['ate_m']
     run.ate_corrected = traj['corrected']['ate_m']
+    run.loops = (r.report['loops']['published'], r.report['loops']['false'])
     for line in log.getvalue().splitlines():
         if m := _RESET.search(line):
             run.resets.append((int(m[1]), m[2]))
@@ -140,8 +143,8 @@ def untied(run: Run) -> list[tuple[int, int, int | None, float | None]]:
 
 def lines(title: str, run: Run) -> list[str]:
     """The figures of one run as printed lines."""
-    rows = [f'{title}: {run.keyframes} keyframes; ATE odometry {run.ate_odometry:.3f} m, '
-            f'corrected {run.ate_corrected:.3f} m']
+    rows = [f'{title}: {run.keyframes} keyframes, {run.loops[0]} loops ({run.loops[1]} false); '
+            f'ATE odometry {run.ate_odometry:.3f} m, corrected {run.ate_corrected:.3f} m']
     rows += [f'  odometry reset at cloud {s}: {why[:110]}' for s, why in run.resets]
     for seg, first, kfs, secs in untied(run):
         if kfs is None:

@@ -183,7 +183,9 @@ class LoopClosure:
             CloudError: no usable point (nothing changed).
             SolidError: malformed points, pose or stamp.
         """
-        return self.detector.propose(points, stamp_ns, None if odom is None else odom.pose)
+        if odom is None:
+            return self.detector.propose(points, stamp_ns)
+        return self.detector.propose(points, stamp_ns, odom.pose, odom.segment)
 
     def finish(self, proposal: Proposal, odom: OdomSample | None) -> Step:
         """Stage 2 in one call: :meth:`commit` what :meth:`verify` gave."""

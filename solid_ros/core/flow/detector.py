@@ -169,6 +169,7 @@ class LoopDetector:
         self.reasons: Counter[str] = Counter()  # verification outcomes so far
         self._kf_stamp: int | None = None
         self._kf_pose: FloatArray | None = None
+        self._kf_segment: int | None = None  # the odometry's segment of the last keyframe
         self._last_loop_query: int | None = None
         # Path driven up to each own keyframe; a jump (reset) starts a new segment.
         self._path = OdometryPath(cfg.capacity, cfg.backend_segment_jump_m)
@@ -292,8 +293,9 @@ class LoopDetector:
         return self.verify(proposal, hint)
 
     def propose(self, points: npt.ArrayLike, stamp_ns: int,
-                pose: Any = None) -> Proposal | None:
-        """Descriptor stage: gate, level, describe, query, store the descriptor.
+                pose: Any = None, segment: int | None = None) -> Proposal | None:
+        """Descriptor stage: gate, level, describe, query, store the descriptor (``segment``:
+        the odometry's segment of the pose, which a reset changes).
 
         Returns:
             The proposal to hand to :meth:`verify`, or None for a gated-out scan.
@@ -317,7 +319,7 @@ class LoopDetector:
         if tight:
             cloud = self._keyframe_points(pts, tight=True, up=self._mount.upright(vec))
         t1 = time.perf_counter()
-        proposal = self._propose_descriptor(desc, stamp, vec, cloud)
+        proposal = self._propose_descriptor(desc, stamp, vec, cloud, segment)
         proposal.descriptor, proposal.tight = desc, tight
         proposal.describe_ms = (t1 - t0) * 1e3
         proposal.search_ms = (time.perf_counter() - t1) * 1e3
@@ -374,7 +376,7 @@ class LoopDetector:
         return out
 
     def _propose_descriptor(self, desc: Descriptor, stamp: int, vec: FloatArray | None,
-                            cloud: FloatArray | None) -> Proposal:
+                            cloud: FloatArray | None, segment: int | None = None) -> Proposal:
         cfg = self._config
         db = self.database
         q_index = db.session_count
@@ -413,8 +415,13 @@ class LoopDetector:
             self._views[q_index] = view_centre(cloud, self._mount)
             while len(self._views) > cfg.capacity:
                 del self._views[next(iter(self._views))]
-        self._path.add(q_index, vec)
+        # A reset the odometry announces (KISS-ICP restarts where the last pose was) is no
+        # jump, but its new segment is another frame all the same: no path runs across it.
+        reset = (segment is not None and self._kf_segment is not None
+                 and segment != self._kf_segment)
+        self._path.add(q_index, vec, reset)
         self._kf_stamp, self._kf_pose = stamp, vec
+        self._kf_segment = segment if segment is not None else self._kf_segment
         return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
                         np.asarray(desc.r_solid, dtype=np.float64), vec, chosen, best)
 
@@ -943,7 +950,7 @@ class LoopDetector:
         self.clouds.clear()
         if self.verifier is not None:
             self.verifier.clear_cache()
-        self._kf_stamp = self._kf_pose = None
+        self._kf_stamp = self._kf_pose = self._kf_segment = None
         self._last_loop_query = None
         self._step = None
         self._path.clear()

@@ -233,13 +233,14 @@ class OdometryPath:
         self._total = 0.0
         self._segment = 0
 
-    def add(self, index: int, pose: FloatArray | None) -> None:
-        """Record keyframe ``index`` (in order) with its pose vector, if any."""
+    def add(self, index: int, pose: FloatArray | None, reset: bool = False) -> None:
+        """Record keyframe ``index`` (in order) with its pose vector, if any; ``reset``: the
+        odometry said it started a new segment (a reset with no jump)."""
         if pose is None:
             return
         if self._last is not None:
             step = float(np.linalg.norm(pose[:3] - self._last[:3]))
-            if step > self._jump_m:
+            if reset or step > self._jump_m:
                 self._segment += 1
             else:
                 self._total += step

@@ -584,3 +584,32 @@ def test_a_registered_step_places_the_query_where_a_runaway_odometry_did_not() -
         assert off < 0.1
         result = det.with_step(det.verify(proposal, step=False), proposal)
         assert result.step is not None and result.step.verified and result.times.step > 0.0
+
+
+def test_no_odometry_check_across_a_reset_the_odometry_announced() -> None:
+    """KISS-ICP restarts a lost segment where its last pose was: no jump, but another frame.
+    A loop across that reset is not held to the odometry's relative pose; within one
+    segment the same loop is."""
+    pytest.importorskip('small_gicp', reason='small-gicp is not installed')
+    from solid_ros.core.geometry import matrix_to_vector
+    from solid_ros.sim.drive import Drive, DriveConfig
+
+    drive = Drive(DriveConfig(seed=0, sensor='hdl64'))
+    first, second = drive.scan(10), drive.scan(11)
+    lost = second.pose.copy()  # where the new segment's odometry puts it: 3 m off sideways
+    lost[:3, 3] += second.pose[:3, :3] @ np.array([0.0, 3.0, 0.0])
+    cfg = SolidConfig(verify_voxel_size=0.5, verify_coarse_voxel_size=1.5,
+                      exclude_recent_frames=0, distance_threshold=2.0, odom_check_slack_m=0.5)
+    for segment in (0, 1):
+        det = LoopDetector(cfg)
+        p = det.propose(first.points, SEC, matrix_to_vector(first.pose), 0)
+        assert p is not None
+        det.verify(p)
+        p = det.propose(second.points, 2 * SEC, matrix_to_vector(lost), segment)
+        assert p is not None
+        res = det.verify(p)
+        (attempt,) = [a for a in res.attempts if a.match_index == 0]
+        if segment == 0:
+            assert attempt.reason == 'odometry' and not res.loops
+        else:
+            assert attempt.verified and math.isnan(attempt.evidence.odom_error_m)

@@ -54,6 +54,9 @@ def test_a_jump_of_the_odometry_is_no_path() -> None:
     assert path.between(0, 1) == pytest.approx(3.0)
     assert path.between(1, 2) is None and path.between(0, 3) is None
     assert path.between(2, 3) == pytest.approx(2.0)
+    # A reset the odometry announces (a new segment where it lost track) with no jump.
+    path.add(4, _pose(53.0, 0.0), reset=True)
+    assert path.between(3, 4) is None and path.between(2, 3) == pytest.approx(2.0)
 
 
 def test_path_forgets_the_oldest_beyond_capacity() -> None:
