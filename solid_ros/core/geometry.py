@@ -14,8 +14,9 @@ import numpy.typing as npt
 
 from solid_ros.core.errors import PoseError, SolidError
 
-__all__ = ['matrix_to_quaternion', 'matrix_to_vector', 'pose_to_vector', 'quaternion_to_matrix',
-           'relative_yaw', 'rot_z', 'rotation_deg', 'rpy_matrix', 'vector_to_matrix', 'yaw_of']
+__all__ = ['invert_rigid', 'matrix_to_quaternion', 'matrix_to_vector', 'pose_to_vector',
+           'quaternion_to_matrix', 'relative_yaw', 'rot_z', 'rotation_deg', 'rpy_matrix',
+           'vector_to_matrix', 'yaw_of']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -140,3 +141,13 @@ def angle_deg(T: npt.ArrayLike) -> float:
     """Rotation angle of a 4x4 (or 3x3) transform's rotation, degrees in [0, 180]."""
     R = np.asarray(T, dtype=np.float64)[:3, :3]
     return math.degrees(math.acos(min(max((float(np.trace(R)) - 1.0) / 2.0, -1.0), 1.0)))
+
+
+def invert_rigid(T: FloatArray) -> FloatArray:
+    """Inverses of rigid 4x4 transforms (any leading dimensions), by transposing rotations."""
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ T[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out

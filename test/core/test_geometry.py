@@ -9,6 +9,7 @@ import pytest
 
 from solid_ros.core.errors import PoseError, SolidError
 from solid_ros.core.geometry import (
+    invert_rigid,
     matrix_to_quaternion,
     matrix_to_vector,
     pose_to_vector,
@@ -67,3 +68,11 @@ def test_pose_formats() -> None:
 def test_zero_quaternion_is_refused() -> None:
     with pytest.raises(PoseError, match='zero length'):
         quaternion_to_matrix(0, 0, 0, 0)
+
+
+def test_invert_rigid_inverts_a_batch_of_poses() -> None:
+    rng = np.random.default_rng(0)
+    T = np.stack([vector_to_matrix(np.r_[rng.normal(size=3) * 10.0, q / np.linalg.norm(q)])
+                  for q in rng.normal(size=(5, 4))])
+    np.testing.assert_allclose(invert_rigid(T), np.linalg.inv(T), atol=1e-12)
+    np.testing.assert_allclose(invert_rigid(T[0]) @ T[0], np.eye(4), atol=1e-12)

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from solid_ros.core.geometry import invert_rigid
+
 __all__ = ['DriftModel', 'adjoint', 'cycle_sigmas', 'implied', 'max_clique', 'mean_alignment',
            'moved_by', 'residual', 'so3_exp']
 
@@ -88,15 +90,6 @@ def adjoint(T: FloatArray) -> FloatArray:
     return out
 
 
-def _inv(T: FloatArray) -> FloatArray:
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -(Rt @ T[..., :3, 3, None])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def _sandwich(ad: FloatArray, cov: FloatArray) -> FloatArray:
     out: FloatArray = ad @ cov @ np.swapaxes(ad, -1, -2)
     return out
@@ -108,7 +101,7 @@ def implied(X: FloatArray, Z: FloatArray, Y: FloatArray,
     perturbation of ``A``: ``Ad(Y Z) cov_z Ad(Y Z)^T``, the loop's rotation error levered
     over the keyframe's distance from the peer's origin)."""
     YZ = Y @ Z
-    return X @ _inv(YZ), _sandwich(adjoint(YZ), cov_z)
+    return X @ invert_rigid(YZ), _sandwich(adjoint(YZ), cov_z)
 
 
 @dataclass(frozen=True)
@@ -160,12 +153,12 @@ def cycle_sigmas(X: FloatArray, Z: FloatArray, Y: FloatArray, cov_z: FloatArray,
     i, j = np.triu_indices(n, 1)
     cov_x = drift.covariance(path_x[j] - path_x[i])
     cov_y = drift.covariance(path_y[j] - path_y[i])
-    d_x = _inv(X[i]) @ X[j]
-    d_y = _inv(Y[i]) @ Y[j]
+    d_x = invert_rigid(X[i]) @ X[j]
+    d_y = invert_rigid(Y[i]) @ Y[j]
     tail = d_y @ Z[j]  # the factors right of each perturbed part, as adjoints below
-    C = Z[i] @ d_x @ _inv(Z[j]) @ _inv(d_y)
+    C = Z[i] @ d_x @ invert_rigid(Z[j]) @ invert_rigid(d_y)
     ad_tail = adjoint(tail)
-    cov = (_sandwich(adjoint(tail @ _inv(d_x)), cov_z[i]) + _sandwich(ad_tail, cov_x)
+    cov = (_sandwich(adjoint(tail @ invert_rigid(d_x)), cov_z[i]) + _sandwich(ad_tail, cov_x)
            + _sandwich(ad_tail, cov_z[j]) + _sandwich(adjoint(d_y), cov_y))
     r = residual(C)
     try:
@@ -186,7 +179,7 @@ def mean_alignment(A: FloatArray, cov: FloatArray,
     best = int(np.argmax(np.trace(info, axis1=-2, axis2=-1)))
     T = A[best].copy()
     for _ in range(iterations):
-        r = residual(_inv(A) @ T)
+        r = residual(invert_rigid(A) @ T)
         step = -H_inv @ np.einsum('kab,kb->a', info, r)
         move = np.eye(4)
         move[:3, :3] = so3_exp(step[:3])

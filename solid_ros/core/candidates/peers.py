@@ -27,6 +27,7 @@ import numpy.typing as npt
 
 from solid_ros.core.candidates.position import PeerPlacement
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.geometry import invert_rigid
 
 __all__ = ['place_peer', 'placed_peers']
 
@@ -62,7 +63,7 @@ def place_peer(peer: int, transform: npt.ArrayLike, covariance: npt.ArrayLike | 
     a = np.where(np.abs(order[at[left]] - order) <= np.abs(order[at[right]] - order),
                  left, right)
     M = np.array([map_poses[i] for i in order[at].tolist()], dtype=np.float64)
-    rel = _inverse(odo[at])[a] @ odo  # inv(O_j) @ O_k
+    rel = invert_rigid(odo[at])[a] @ odo  # inv(O_j) @ O_k
     placed = (np.asarray(transform, dtype=np.float64) @ M)[a] @ rel
     # The peer's odometry path from j to k (its keyframes in index order).
     steps = np.linalg.norm(np.diff(odo[:, :3, 3], axis=0), axis=1)
@@ -84,16 +85,6 @@ def placed_peers(placements: list[PeerPlacement]) -> PeerPlacement:
                             np.concatenate([p.poses for p in kept]),
                             np.concatenate([p.sigma_m for p in kept]),
                             np.concatenate([p.yaw_sigma_rad for p in kept]))
-
-
-def _inverse(T: FloatArray) -> FloatArray:
-    """Inverses of rigid transforms (n, 4, 4)."""
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
-    out[:, :3, :3] = Rt
-    out[:, :3, 3] = -(Rt @ T[:, :3, 3, None])[:, :, 0]
-    out[:, 3, 3] = 1.0
-    return out
 
 
 def _drift_variances(path_m: FloatArray, config: SolidConfig) -> tuple[FloatArray, FloatArray]:
