@@ -171,7 +171,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         config, node_config = load_config(params, 'solid_node', overrides)
         result = replay(bag, config, node_config=node_config, poses=bag.parent / 'poses.txt',
                         times=bag.parent / 'times.txt', radius=args.radius,
-                        out_dir=args.out, progress='quiet' if args.quiet else 'auto',
+                        out_dir=args.out, plots=True, progress='quiet' if args.quiet else 'auto',
                         params_file=params)
     except SolidError as err:
         print(f'{PROG}: error: {err}', file=sys.stderr)

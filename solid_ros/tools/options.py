@@ -102,7 +102,9 @@ class ReplayOptions:
         max_pose_error_deg: ... and this rotation error of the reference relative pose.
         target_precision: the sweep recommends the setting reaching this precision.
         out_dir: where to write candidates.csv, report.json and plots (None: nothing).
-        plots: write PNG plots to ``out_dir`` when poses are available.
+        plots: also write PNG plots to ``out_dir`` when poses are available (off by
+            default: matplotlib and the six figures cost more than the replay of a short
+            bag; the demo turns them on).
         map: write the map of the keyframe clouds at their corrected poses (``map.pcd``).
         load_db: database file to load before the run (its scans are searched too).
         save_db: where to save the database after the run.
@@ -128,7 +130,7 @@ class ReplayOptions:
     max_pose_error_deg: float = 3.0
     target_precision: float = 1.0
     out_dir: str | Path | None = None
-    plots: bool = True
+    plots: bool = False
     map: bool = False
     load_db: str | Path | None = None
     save_db: str | Path | None = None

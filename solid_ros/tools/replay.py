@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
                     'given reference poses, evaluate them: Recall@1, PR curve, F1max and its '
                     'threshold, ROC AUC, yaw error, ATE / RPE of the odometry and of the '
                     'corrected trajectory; write candidates.csv, report.json, '
-                    'trajectory.tum/.kitti and plots with --out.',
+                    'trajectory.tum/.kitti with --out (and PNG plots with --plots).',
         epilog='With several bags (a fleet) --poses, --times, --load-db, --save-db '
                'and --map mean nothing and are ignored, one line each saying why; '
                'the other options apply to every robot; with the back end each robot places '
@@ -246,8 +246,12 @@ def _scoring_options(p: argparse.ArgumentParser) -> None:
 
 def _output_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--out', metavar='DIR',
-                   help='write candidates.csv, report.json and PNG plots here')
-    p.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+                   help='write candidates.csv, report.json and the trajectories here')
+    p.add_argument('--plots', action='store_true',
+                   help='with --out, also write PNG plots (trajectory, verification, '
+                        'histograms, precision-recall; needs matplotlib)')
+    p.add_argument('--no-plots', action='store_true',
+                   help='no PNG plots (the default; kept for scripts that pass it)')
     p.add_argument('--map', action='store_true',
                    help='also write map.pcd: the keyframe clouds at their corrected poses '
                         '(map_voxel_size, map_max_points)')
@@ -325,8 +329,9 @@ def _options(args: argparse.Namespace) -> ReplayOptions:
         radius=args.radius,
         max_heading_deg=args.max_heading_deg, max_pose_error_m=args.max_pose_error_m,
         max_pose_error_deg=args.max_pose_error_deg, target_precision=args.target_precision,
-        out_dir=args.out, plots=not args.no_plots, load_db=args.load_db, save_db=args.save_db,
-        params_file=args.params, progress='quiet' if args.quiet else args.progress)
+        out_dir=args.out, plots=args.plots and not args.no_plots, load_db=args.load_db,
+        save_db=args.save_db, params_file=args.params,
+        progress='quiet' if args.quiet else args.progress)
 
 
 def _fleet_options(args: argparse.Namespace) -> ReplayOptions:

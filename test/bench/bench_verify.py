@@ -14,8 +14,9 @@ relative pose as the first start, and the run calibrates itself on pairs of its 
 So, with the data present, the same run also replays hku1 as ``solid_replay`` does (the preset
 as shipped, the bag's odometry, the back end) and prints that verification time per keyframe
 (``hku1 replay``) and the replay's scans per second (without the interpreter's start-up),
-and then runs the ``solid_replay`` command itself on hku1 with ``--out``, with and without the
-plots, for its scans per second with start-up and outputs included (``hku1 solid_replay``).
+and then runs the ``solid_replay`` command itself on hku1 with ``--out``, as it runs by
+default and with ``--plots``, for its scans per second with start-up and outputs included
+(``hku1 solid_replay``).
 
 The issue's goals are absolute (30 ms median, 60 ms p95), but this machine's speed varies
 from day to day, so the same run also times the SOLiD authors' C++ describe of KITTI scan 313
@@ -174,8 +175,8 @@ def run_replay(name: str, preset: str) -> Row:
 
 def run_cli(name: str, preset: str, plots: bool) -> Row:
     """hku1 through the ``solid_replay`` command as a user runs it, start-up included: a
-    fresh interpreter, its imports, the bag, the back end and ``--out``'s files, with or
-    without the plots (``--no-plots``). Its CPU time too (the child's, all threads)."""
+    fresh interpreter, its imports, the bag, the back end and ``--out``'s files, as it runs
+    by default (no plots) and with ``--plots``. Its CPU time too (the child's, all threads)."""
     import json
     import resource
     import subprocess
@@ -188,7 +189,7 @@ def run_cli(name: str, preset: str, plots: bool) -> Row:
     with tempfile.TemporaryDirectory(prefix='solid_cli_') as out:
         cmd = [sys.executable, '-m', 'solid_ros.tools.replay', str(DATA / 'hku1' / 'bag'),
                '--params', str(ROOT / 'config' / preset), '--out', out, '-q',
-               *([] if plots else ['--no-plots'])]
+               *(['--plots'] if plots else [])]
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, env=env, cwd=out)
@@ -200,7 +201,7 @@ def run_cli(name: str, preset: str, plots: bool) -> Row:
           f'{scans / cpu:5.1f} per CPU second (start-up included)  | {wall:5.1f} s, CPU '
           f'{cpu:5.1f} s', flush=True)
     return {'name': name, 'preset': preset, 'scans': scans, 'plots': plots,
-            'mode': f'solid_replay --out{"" if plots else " --no-plots"} (start-up included)',
+            'mode': f'solid_replay --out{" --plots" if plots else ""} (start-up included)',
             'scans_per_s': scans / wall, 'scans_per_cpu_s': scans / cpu, 'seconds': wall,
             'cpu_seconds': cpu}
 
@@ -247,8 +248,8 @@ def main() -> int:
             rows.append(timed(lambda: run('hku1 (real Avia)', hku1[:args.scans], 'avia.yaml')))
             rows.append(timed(lambda: run_replay('hku1 replay (as shipped)', 'avia.yaml')))
             cli = [] if args.no_cli else [
-                run_cli('hku1 solid_replay, plots', 'avia.yaml', True),
-                run_cli('hku1 solid_replay, no plots', 'avia.yaml', False)]
+                run_cli('hku1 solid_replay --plots', 'avia.yaml', True),
+                run_cli('hku1 solid_replay (default)', 'avia.yaml', False)]
         else:
             print(f'hku1 skipped: no data at {DATA}')
         rows.append(timed(lambda: run('simulated avia_like', _sim('avia_like', args.scans),
@@ -288,7 +289,7 @@ NOTES = ('Verification time per keyframe on one core (wall clock as the detector
          "is, the bag's odometry and the back end (scans/s of the replay, start-up not "
          "included); 'solid_replay': the command a user runs on hku1 with --out, start-up "
          '(interpreter, imports from compiled bytecode, bag) and the files written after the '
-         'last scan included, with the plots and with --no-plots (scans/s of wall time, and '
+         'last scan included, as it runs by default and with --plots (scans/s of wall time, and '
          "per second of the process's CPU time). The authors' C++ describe of KITTI 313, "
          'timed before, between and after the rows: {cpp} ms CPU; each row is divided by the '
          'mean of the two beside it.')

@@ -22,6 +22,7 @@ from solid_ros.formats.pointcloud2 import CloudLayout, encode_points
 from solid_ros.tools.plots import PLOT_FILES
 from solid_ros.tools.replay import (
     CSV_COLUMNS,
+    _options,
     build_parser,
     expand_set_arguments,
     main,
@@ -126,7 +127,7 @@ def test_best_matches_cover_rejected_queries(bags: dict[str, Path]) -> None:
 @pytest.mark.slow
 def test_outputs(tmp_path: Path, bags: dict[str, Path]) -> None:
     out = tmp_path / 'out'
-    result = replay(bags['sqlite3'], TEST_CFG, out_dir=out, progress='quiet')
+    result = replay(bags['sqlite3'], TEST_CFG, out_dir=out, plots=True, progress='quiet')
     with (out / 'candidates.csv').open() as fh:
         rows = list(csv.DictReader(fh))
     assert tuple(rows[0]) == CSV_COLUMNS
@@ -204,7 +205,7 @@ def test_clouds_without_a_usable_point_are_skipped_and_counted(
             w.write('/points', stamp, w.cloud_msg(pts, stamp))
     n_bad = (len(scans) + 1) // 2
     out = tmp_path / 'out'
-    result = replay(path, TEST_CFG, out_dir=out, progress='quiet', plots=False)
+    result = replay(path, TEST_CFG, out_dir=out, progress='quiet')
     clean = replay(bags['mcap'], TEST_CFG, progress='quiet')
     assert result.messages == len(scans) + n_bad and result.skipped == n_bad
     assert result.keyframes == clean.keyframes == len(scans)
@@ -260,6 +261,14 @@ def test_cli_runs_and_prints_summary(tmp_path: Path, bags: dict[str, Path],
     # What the first clouds show of the sensor, in the summary and the report.
     assert '  sensor            360-degree' in out
     assert report['sensor']['measured'].startswith('360-degree')
+    assert not list((tmp_path / 'o').glob('*.png'))  # plots only with --plots
+
+
+def test_plots_are_opt_in() -> None:
+    def plots(*argv: str) -> bool:
+        return _options(parse_arguments(['B', '--out', 'o', *argv])).plots
+
+    assert (plots(), plots('--plots'), plots('--no-plots')) == (False, True, False)
 
 
 @pytest.mark.parametrize('argv', [
@@ -618,7 +627,7 @@ def sim_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.mark.slow
 def test_published_loops_carry_a_correct_relative_pose(tmp_path: Path, sim_bag: Path) -> None:
     out = tmp_path / 'out'
-    result = replay(sim_bag, SIM_CFG, out_dir=out, progress='quiet')
+    result = replay(sim_bag, SIM_CFG, out_dir=out, plots=True, progress='quiet')
     assert result.reference is not None
     loops = result.report['loops']
     assert loops['published'] >= 8 and loops['precision'] == 1.0, loops
@@ -694,7 +703,7 @@ def test_pose_limits_and_target_precision_are_options(tmp_path: Path, sim_bag: P
 def test_descriptor_only_sweeps_the_distance_threshold(tmp_path: Path, bags: dict[str, Path],
                                                        capsys: pytest.CaptureFixture[str]) -> None:
     cfg = TEST_CFG.replace(verify=False)
-    result = replay(bags['mcap'], cfg, out_dir=tmp_path, progress='quiet', plots=False)
+    result = replay(bags['mcap'], cfg, out_dir=tmp_path, progress='quiet')
     assert [(c.query_index, c.match_index) for c in result.candidates] == \
         [(10 + k, k) for k in range(6)]
     assert all(c.reason == 'descriptor' and not c.verified for c in result.candidates)

@@ -66,7 +66,8 @@ def test_loops_bring_the_drifting_odometry_back(tmp_path: Path,
     bag, tum, ref = drive
     stream = io.StringIO()
     out = tmp_path / 'out'
-    result = replay(bag, CFG, poses=tum, out_dir=out, progress='lines', stream=stream)
+    result = replay(bag, CFG, poses=tum, out_dir=out, plots=True, progress='lines',
+                    stream=stream)
     report = json.loads((out / 'report.json').read_text())
     t = report['trajectory']
     assert t['keyframes'] == result.keyframes == len(SCANS)
