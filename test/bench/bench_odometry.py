@@ -26,7 +26,7 @@ intensity): KISS-ICP then deskews nothing, on or off. Prints for each:
 Timings on a shared 2-core machine are noisy. ``--report FILE`` writes the figures with the
 date and commit (Markdown for ``doc/reports/``, else JSON); ``--save DIR`` keeps the poses.
 Usage: ``python test/bench/bench_odometry.py [--sets hku1,quickshack,riv281] [--settings
-derived|preset] [--deskew on|off] [--report FILE] [--save DIR]``.
+derived|preset] [--deskew on|off] [--voxel M] [--report FILE] [--save DIR]``.
 """
 
 from __future__ import annotations
@@ -151,9 +151,12 @@ def realtime_fraction(stamps: list[int], costs: list[float]) -> float:
     return done / len(t)
 
 
-def run(name: str, mode: str, deskew: str, save: Path | None) -> dict[str, Any]:
+def run(name: str, mode: str, deskew: str, save: Path | None,
+        voxel: float = 0.0) -> dict[str, Any]:
     clouds, stamps, ref = load(name)
     cfg = replace(settings(name, mode, clouds), kiss_deskew=deskew == 'on')
+    if voxel > 0:
+        cfg = replace(cfg, kiss_voxel_size=voxel)
     times = point_times(name) if deskew == 'on' else [None] * len(clouds)
     timed = sum(t is not None for t in times)
     print(f'{name}: {len(clouds)} clouds; max range {cfg.kiss_max_range:.1f} m, min range '
@@ -215,6 +218,8 @@ def main() -> int:
     p.add_argument('--sets', default=','.join(PRESETS))
     p.add_argument('--settings', choices=('derived', 'preset'), default='derived')
     p.add_argument('--deskew', choices=('on', 'off'), default='off')
+    p.add_argument('--voxel', type=float, default=0.0,
+                   help="KISS-ICP's voxel for both, metres, instead of --settings' (0: theirs)")
     p.add_argument('--report', type=Path)
     p.add_argument('--save', type=Path)
     args = p.parse_args()
@@ -224,7 +229,7 @@ def main() -> int:
     SolidConfig()  # the project imports cleanly before the long runs
     figures = {}
     for name in args.sets.split(','):
-        figures[name] = run(name, args.settings, args.deskew, args.save)
+        figures[name] = run(name, args.settings, args.deskew, args.save, args.voxel)
         print('\n'.join(lines(name, figures[name])), flush=True)
     if args.report is not None:
         meta = bench_meta('bench_odometry', vars(args) | {'sets': args.sets.split(',')})
