@@ -7,9 +7,11 @@ another day. Printed for session 1: its loops into the saved map (published, fal
 1 m / 3 deg of the reference relative pose; by source), and the cross-session revisit recall:
 its keyframes with a saved keyframe within 5 m (reference poses) that got a right loop into the
 map. ``--no-map-candidates`` runs session 1 without the saved map's keyframes as candidates by
-position (only the descriptor proposes from the map), for comparison.
+position (only the descriptor proposes from the map), for comparison; ``--both`` runs with
+and without them. ``--report FILE`` writes what it printed with the date and commit.
 
-Usage: ``python test/bench/bench_cross_session.py [--split 157] [--no-map-candidates]``.
+Usage: ``python test/bench/bench_cross_session.py [--split 157] [--no-map-candidates | --both]
+[--report FILE]``.
 """
 
 from __future__ import annotations
@@ -24,6 +26,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from report import PrintedReport, bench_meta  # noqa: E402
 
 from solid_ros.core.errors import SolidError  # noqa: E402
 from solid_ros.core.flow.closure import LoopClosure  # noqa: E402
@@ -102,12 +107,19 @@ def run(split: int, map_candidates: bool) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--split', type=int, default=157)
-    p.add_argument('--no-map-candidates', action='store_true')
+    group = p.add_mutually_exclusive_group()
+    group.add_argument('--no-map-candidates', action='store_true')
+    group.add_argument('--both', action='store_true',
+                       help='with the map candidates, then without them')
+    p.add_argument('--report', type=Path, help='write the printed figures (.md or JSON)')
     args = p.parse_args()
     if not DATA.is_dir():
         print(f'bench_cross_session: {DATA} is missing: nothing to run')
         return 0
-    run(args.split, not args.no_map_candidates)
+    modes = [True, False] if args.both else [not args.no_map_candidates]
+    with PrintedReport(args.report, bench_meta('bench_cross_session', vars(args))):
+        for map_candidates in modes:
+            run(args.split, map_candidates)
     return 0
 
 
