@@ -38,10 +38,12 @@ descriptor's other candidates only when they leave fewer than ``max_candidates``
 verified. Without a hint nothing changes.
 
 Registered steps (``backend_step_registration`` 'on'; 'auto' is resolved by the replay and the
-node: on with KISS-ICP run on the same clouds): after its loops, :meth:`verify` registers the
-keyframe to this session's previous one, started from the odometry step, through the same
-coarse and fine stages and tests except the single-object test (the place is known), and
-returns it as :attr:`ScanResult.step` for the pose graph (never published).
+node: on with KISS-ICP run on the same clouds): :meth:`verify` registers the keyframe to this
+session's previous one, started from the odometry step, through the same coarse and fine
+stages and tests except the single-object test (the place is known); with a hint it does so
+before the candidates and the graph predicts the query from that step, not from the odometry's
+(a lost scan-only odometry's step can be metres off). It returns it as
+:attr:`ScanResult.step` for the pose graph (never published).
 
 Acceptance with ``verify`` (see :mod:`solid_ros.core.verification.verifier`): every candidate goes
 through the coarse registration; those that pass are verified in order of coarse overlap,
@@ -52,8 +54,10 @@ a distinct place, at most ``max_candidates``. In both modes nothing is published
 
 Odometry check (:mod:`solid_ros.core.odometry.track`): a loop between two keyframes of this session
 that both came with a pose is refused (reason ``'odometry'``) when its translation differs
-from the odometry's by more than ``odom_check_drift`` times the path driven between them plus
-``odom_check_slack_m``; with ``verify`` the next candidate is tried instead.
+from the odometry's by more than the judge's allowance over the path driven between them
+(``odom_check_slack_m`` plus a drift per metre: ``odom_check_drift`` until the run has measured
+its odometry's, :mod:`solid_ros.core.verification.calibration`); with ``verify`` the next
+candidate is tried instead.
 
 Unusable clouds: a cloud with no point that is finite and inside the range gate, the FOV clip
 and ``max_distance`` (all NaN, all beyond range, empty, ...) would give an all-zero R-SOLiD
