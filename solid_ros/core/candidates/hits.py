@@ -85,18 +85,23 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
         seen = view_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, own.centre,
                               extent(proposal.cloud_points), views, cfg, sorted(close))
     viewed = {c.index for c in seen}
+    mapped = map_keyframes(hint, odom, cfg)
+    mapped_near = {(c.session, c.index) for c in mapped}
     hits = []
     for h in proposal.hits:
         T = own.guess(h, viewed)
-        if T is not None:
+        if T is not None and h.match.session == cfg.session_id:
             h = replace(h, guess=mount.level_pose(T), near=h.match.index in close,
                         view=h.match.index in viewed, heading_tol_deg=own.tol,
                         sigma_m=own.sigma, place_sigma=own.sigma_to(h.match.index))
+        elif T is not None:  # a loaded map's: another session's indices, no joint marginal
+            h = replace(h, guess=mount.level_pose(T),
+                        near=(h.match.session, h.match.index) in mapped_near,
+                        heading_tol_deg=own.tol, sigma_m=own.sigma)
         hits.append(h)
     taken = {h.match.index for h in hits if h.match.session == cfg.session_id}
     out = hits + own.hits([(c, 'near') for c in near] + [(c, 'view') for c in seen], taken,
                           database, own_seqs)
-    mapped = map_keyframes(hint, odom, cfg)
     if mapped and map_seqs:
         out += own.map_hits(mapped, {(h.match.session, h.match.index) for h in out}, database,
                             map_seqs)

@@ -209,3 +209,44 @@ def test_a_peer_without_a_known_map_pose_or_covariance_is_not_placed() -> None:
     assert not len(place_peer(1, np.eye(4), None, {0: np.eye(4)}, odom, SolidConfig()).keys)
     assert not len(place_peer(1, np.eye(4), np.eye(6), {7: np.eye(4)}, odom,
                               SolidConfig()).keys)
+
+
+def test_a_loaded_maps_descriptor_hit_is_judged_by_the_map_not_by_own_keyframes() -> None:
+    """Session 1 drove keyframes 0..29 along x and stands at x = 29.5; the loaded map
+    (session 0) has keyframe 40 beside it and keyframe 29 far off. The descriptor proposes
+    both: their indices are the map's, so own keyframe 29 (near, with a joint marginal to the
+    query) says nothing of them. Map 40 is near because the map's near keyframes hold it,
+    map 29 is not, and neither asks the graph for a sigma relative to an own keyframe."""
+    cfg = SolidConfig(session_id=1, exclude_recent_sec=0.0, graph_candidate_max_radius_m=50.0)
+    db = DescriptorDatabase(cfg)
+    rng = np.random.default_rng(1)
+
+    def pose(x: float, y: float = 0.0) -> np.ndarray:
+        T = np.eye(4)
+        T[:2, 3] = (x, y)
+        return T
+
+    own = np.array([pose(float(i)) for i in range(30)])
+    seqs = {i: db.add(rng.random(40), rng.random(60), i * SEC) for i in range(30)}
+    asked: list[int] = []
+
+    def relative(j: int) -> np.ndarray:
+        asked.append(j)
+        return np.diag([1e-6] * 6)
+
+    placed = {(0, 40): pose(29.5, 1.0), (0, 29): pose(29.5, 40.0)}
+    hint = GraphHint.of(np.arange(30), np.arange(30) * SEC, own, own, np.eye(4),
+                        np.diag([0.04] * 3 + [1e-4] * 3), relative, placed)
+    cloud = np.array([[5.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, -1.0, 1.0]])
+    prop = Proposal(30, 30 * SEC, 30, np.zeros(60), cloud, pose=matrix_to_vector(pose(29.5)))
+    prop.hits = [Hit(Match(100 + k, k, 0, k * SEC, 0.1), math.nan,
+                     np.zeros(60, np.float32), 'descriptor') for k in (40, 29)]
+    hits = {h.match.index: h for h in with_graph_hits(prop, hint, cfg, db, seqs, {},
+                                                        Mount(cfg)) if h.match.session == 0}
+    assert hits[40].guess is not None and hits[40].near and not hits[40].view
+    assert hits[29].guess is not None and not hits[29].near and not hits[29].view
+    assert hits[40].place_sigma is None and hits[29].place_sigma is None
+    assert hits[40].sigma_m == hits[29].sigma_m < 1.0
+    for h in hits.values():
+        hit_knows_place(h, np.array([5.0, 0.0, 0.0]), cfg, h.guess)
+    assert asked == []
