@@ -98,9 +98,9 @@ from solid_ros.core.descriptor.matching import estimate_yaw, heading_hypotheses
 from solid_ros.core.descriptor.mount import Mount
 from solid_ros.core.descriptor.solid import describe, preprocess, voxel_downsample
 from solid_ros.core.errors import CloudError, ConfigError
+from solid_ros.core.flow.own_pairs import OwnKeyframes, calibrate
 from solid_ros.core.flow.place import HitPlace
 from solid_ros.core.geometry import (
-    angle_deg,
     pose_to_vector,
     rot_z,
     rotation_deg,
@@ -118,22 +118,13 @@ from solid_ros.core.results import (
     StageTimes,
 )
 from solid_ros.core.stamps import check_stamp
-from solid_ros.core.verification.calibration import (
-    AGREE_DEG,
-    AGREE_M,
-    PAIR_MAX_BACK,
-    PAIR_MAX_TURN_DEG,
-    PAIR_PATH_M,
-    Calibration,
-    closes,
-)
+from solid_ros.core.verification.calibration import Calibration
 from solid_ros.core.verification.judge import Bars, Measures, judge
 from solid_ros.core.verification.judge import bars as judge_bars
 from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
 from solid_ros.core.verification.registration import Query, coarsened, for_peers
 from solid_ros.core.verification.verifier import (
     TIGHT_GRID,
-    PoseMeasures,
     Verification,
     Verifier,
 )
@@ -500,104 +491,20 @@ class LoopDetector:
                             proposal.descriptor)
         return self.with_step(result, proposal) if step else result
 
+    @property
+    def _own(self) -> OwnKeyframes:
+        """This session's stored keyframes for the registrations to them (a view: the
+        database is replaced on reset and load)."""
+        return OwnKeyframes(self.database, self.clouds, self._own_seqs, self._path,
+                            self._mount, self._config.session_id)
+
     def _calibrate(self, proposal: Proposal) -> None:
         """Register the keyframe to a partner a few metres back along the odometry and teach
         the calibration what a right alignment and the odometry's drift look like here (see
         :mod:`solid_ros.core.verification.calibration`)."""
-        verifier, query = self.verifier, proposal.query
-        if (verifier is None or query is None or not query.usable or proposal.pose is None
-                or not self.calibration.wants(proposal.query_index)):
-            return
-        partner = self._partner(proposal.query_index, proposal.pose)
-        if partner is None:
-            return
-        back, seq, path = partner
-        pose_j = self.database.pose(seq)
-        if pose_j is None or self.clouds.get(seq) is None:
-            return
-        got = self._register_own(query, proposal.pose, seq)
-        if got is None:
-            self.calibration.add(False, math.nan, False, math.nan, path)
-        else:
-            m, guess = got
-            off = np.linalg.solve(guess, m.T_mq)
-            error = float(np.linalg.norm(off[:3, 3]))
-            fits = m.converged == 1.0 and m.overlap >= self._config.verify_min_overlap
-            agreed = fits and error < AGREE_M and angle_deg(off) < AGREE_DEG
-            # Away from the odometry: right all the same if a triangle of registrations
-            # closes (a lost odometry is no judge).
-            right = agreed or (fits and self.calibration.wants_triangle(proposal.query_index)
-                               and self._closes(query, proposal.pose,
-                                                proposal.query_index - back, m.T_mq))
-            # The drift only from poses the judge stands by as loops: a room aliases a few
-            # metres off, a street seen from a car slides along itself (riv281: 2-12 m).
-            verified = judge(m, verifier.bars, 'fine').verified
-            self.calibration.add(right, m.conflict if right else math.nan, verified, error,
-                                 path, agreed)
-        verifier.learn(self.calibration.learned)
-
-    def _register_own(self, query: Query, pose: FloatArray,
-                      seq: int) -> tuple[PoseMeasures, FloatArray] | None:
-        """Register ``query`` (a keyframe of this session at odometry ``pose``) to this
-        session's stored keyframe ``seq`` from the odometry's relative pose: the measures of
-        the pose it converged to, unjudged, and that start (levelled ``T_mq``); None when
-        the keyframe's pose or cloud is gone or the coarse stage refused."""
-        assert self.verifier is not None
-        pose_j, cloud = self.database.pose(seq), self.clouds.get(seq)
-        if pose_j is None or cloud is None:
-            return None
-        odo = np.linalg.solve(vector_to_matrix(pose_j), vector_to_matrix(pose))
-        guess = self._mount.level_pose(np.asarray(odo, dtype=np.float64))
-        coarse = self.verifier.coarse(query, (self._config.session_id, seq), cloud, [],
-                                      (guess,))
-        if coarse.rejection is not None:
-            return None
-        return self.verifier.measure(query, coarse), guess
-
-    def _closes(self, query: Query, pose: FloatArray, a: int, T_ak: FloatArray) -> bool:
-        """Whether the query's registration ``T_ak`` to its partner, keyframe ``a``, closes a
-        triangle with the partner's own partner ``b``: a->b and query->b registered, both
-        converged with ``verify_min_overlap`` (see
-        :func:`~solid_ros.core.verification.calibration.closes`)."""
-        assert self.verifier is not None
-        seq_a = self._own_seqs.get(a)
-        stored = None if seq_a is None else self.database.pose(seq_a)
-        cloud_a = None if seq_a is None else self.clouds.get(seq_a)
-        if stored is None or cloud_a is None:
-            return False
-        pose_a: FloatArray = np.asarray(stored, dtype=np.float64)
-        partner = self._partner(a, pose_a)
-        if partner is None:
-            return False
-        legs = []
-        for q, p in ((self.verifier.query_of(cloud_a), pose_a), (query, pose)):
-            got = self._register_own(q, p, partner[1])
-            if got is None or not (got[0].converged == 1.0
-                                   and got[0].overlap >= self._config.verify_min_overlap):
-                return False
-            legs.append(got[0].T_mq)
-        return closes(T_ak, legs[0], legs[1])
-
-    def _partner(self, index: int, pose: FloatArray) -> tuple[int, int, float] | None:
-        """This session's keyframe a few metres back along the odometry (how many keyframes
-        back, its sequence number and the path between): the newest one :data:`PAIR_PATH_M`
-        back or turned :data:`PAIR_MAX_TURN_DEG` from ``pose``, else the oldest within
-        :data:`PAIR_MAX_BACK` keyframes; None when none is stored on the segment."""
-        best: tuple[int, int, float] | None = None
-        for back in range(1, PAIR_MAX_BACK + 1):
-            seq = self._own_seqs.get(index - back)
-            path = self._path.between(index - back, index)
-            if seq is None or path is None or not self.database.is_stored(seq):
-                break
-            other = self.database.pose(seq)
-            turned = (other is not None and rotation_deg(
-                pose[3:], np.asarray(other[3:], dtype=np.float64)) > PAIR_MAX_TURN_DEG)
-            if turned and best is not None:
-                break  # the one before shares more of the view
-            best = (back, seq, path)
-            if path >= PAIR_PATH_M or turned:
-                break
-        return best
+        if self.verifier is not None:
+            calibrate(self._own, self.verifier, self.calibration, proposal,
+                      self._config.verify_min_overlap)
 
     def _registered_hint(self, proposal: Proposal, hint: GraphHint) -> GraphHint:
         """``hint`` predicting the query from its registered step instead of the odometry's,
@@ -643,26 +550,13 @@ class LoopDetector:
         """The keyframe registered to this session's previous one from the odometry step
         (the loops' coarse and fine stages and tests); None without a pose, a cloud or a
         verified alignment. It corrects an odometry that ran away between two keyframes."""
-        prev = proposal.query_index - 1
-        seq = self._own_seqs.get(prev)
-        query = proposal.query
-        if (self.verifier is None or query is None or proposal.pose is None or seq is None
-                or not self.database.is_stored(seq)):
+        got = None if self.verifier is None else self._own.step(self.verifier, proposal)
+        if got is None:
             return None
-        pose_prev = self.database.pose(seq)
-        cloud = self.clouds.get(seq)
-        if pose_prev is None or cloud is None:
-            return None
-        step = np.linalg.solve(vector_to_matrix(pose_prev), vector_to_matrix(proposal.pose))
-        key = (self._config.session_id, seq)
-        fine = self.verifier.fine(query, self.verifier.coarse(
-            query, key, cloud, [], (self._mount.level_pose(np.asarray(step, dtype=np.float64)),)),
-            step=True)
-        if not fine.verified:
-            return None
+        fine, seq = got
         _, _, stamp = self.database.match_info(seq)
-        hit = Hit(Match(seq, prev, self._config.session_id, stamp, math.nan), math.nan,
-                  np.zeros(0, dtype=np.float32), 'step')
+        hit = Hit(Match(seq, proposal.query_index - 1, self._config.session_id, stamp,
+                        math.nan), math.nan, np.zeros(0, dtype=np.float32), 'step')
         return self._candidate(proposal, hit, 0.0, fine)
 
     def _candidate(self, proposal: Proposal, hit: Hit, yaw: float,
