@@ -10,7 +10,9 @@ file name). Prints one line per pair and exits 1 when any pair differs.
 ``--verdicts`` compares what was decided instead, for a change of the output format: every
 candidate (by query, match and session, in order) with the same verdict, pose, covariance and
 acceptance, read by column name from both files; a reason may have been renamed where one
-check was split into several (:data:`RENAMED`).
+check was split into several (:data:`RENAMED`). With KISS-ICP's odometry two runs of the same
+code already differ in the last digits of some poses (its threads), so judge those by their
+verdicts.
 """
 
 from __future__ import annotations
