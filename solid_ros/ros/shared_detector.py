@@ -226,12 +226,12 @@ class SharedDetector:
         """This robot's stored cloud of keyframe ``index`` as a peer gets it
         (:meth:`LoopDetector.peer_cloud`) if it is stamped ``stamp_ns``, else None (a request
         naming another stamp is not for this keyframe)."""
-        with self._describe_lock:
+        with self._describe_lock:  # stage 1 adds to what own_seq reads
             db = self._detector.database
             seq = db.own_seq(index)
             if seq is None or db.match_info(seq)[2] != stamp_ns:
                 return None
-        return self._detector.peer_cloud(index)
+            return self._detector.peer_cloud(index)
 
     def own_keyframes(self, limit: int) -> list[tuple[int, int, FloatArray, FloatArray,
                                                       FloatArray | None]]:

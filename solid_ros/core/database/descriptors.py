@@ -90,7 +90,11 @@ class DescriptorDatabase:
         # Stored vector for an all-zero R-SOLiD: the farthest possible from every
         # non-negative unit query, so it never crowds the top k.
         self._sentinel = np.full(self.num_range, -1.0 / math.sqrt(self.num_range), np.float32)
+        # The stored scans are seqs _oldest .. _next - 1. Stage 2 of solid_node reads
+        # oldest_seq while stage 1 adds, so _oldest is a field of its own that never runs
+        # ahead of the scans stored (next - size did, for an instant, between the two).
         self._next = 0  # next sequence number
+        self._oldest = 0
         self._size = 0
         self._session_count = 0  # scans added in the current session (the next index)
         self._last_stamp: int | None = None
@@ -123,7 +127,7 @@ class DescriptorDatabase:
     @property
     def oldest_seq(self) -> int:
         """Sequence number of the oldest stored scan of this session or a loaded one."""
-        return self._next - self._size
+        return self._oldest
 
     @property
     def next_seq(self) -> int:
@@ -320,8 +324,16 @@ class DescriptorDatabase:
         if r.shape != (self.num_range,) or a.shape != (self.num_angle,):
             raise DatabaseError(f'descriptor shape ({r.shape[0]}, {a.shape[0]}) does not match '
                                 f'the database ({self.num_range}, {self.num_angle})')
+        p = None
+        if pose is not None:  # checked before anything changes
+            p = np.asarray(pose, dtype=np.float32).ravel()
+            if p.shape != (len(POSE_FIELDS),):
+                raise DatabaseError(f'pose must have {len(POSE_FIELDS)} values '
+                                    f'{POSE_FIELDS}, got shape {p.shape}')
         s = self._next % self.capacity
         self._reserve(s + 1)
+        if self._size == self.capacity:
+            self._oldest += 1  # the scan in slot s is gone before it is overwritten
         r_unit, has_r = unit_vector(r)
         a_unit, _ = unit_vector(a)
         flags = _HAS_R if has_r else np.uint8(0)
@@ -330,11 +342,7 @@ class DescriptorDatabase:
         self._stamp[s] = stamp_ns
         self._index[s] = index
         self._session[s] = session
-        if pose is not None:
-            p = np.asarray(pose, dtype=np.float32).ravel()
-            if p.shape != (len(POSE_FIELDS),):
-                raise DatabaseError(f'pose must have {len(POSE_FIELDS)} values '
-                                    f'{POSE_FIELDS}, got shape {p.shape}')
+        if p is not None:
             self._pose[s] = p
             flags |= _HAS_POSE
         else:
@@ -572,6 +580,8 @@ class DescriptorDatabase:
         count = n - first
         slots = np.arange(self._next, self._next + count) % self.capacity
         self._reserve(min(self.capacity, self._next + count))
+        # The scans of the slots overwritten are gone first (see ``_oldest``).
+        self._oldest = self._next + count - min(self._size + count, self.capacity)
         r_unit, has_r = _unit_rows(np.asarray(arrays['r_solid'])[first:])
         r_unit[~has_r] = self._sentinel
         a_unit, _ = _unit_rows(np.asarray(arrays['a_solid'])[first:])
