@@ -10,7 +10,6 @@ topics with the preset's parameters.
 from __future__ import annotations
 
 import os
-import random
 import shutil
 import signal
 import subprocess
@@ -37,6 +36,7 @@ from rcl_interfaces.srv import GetParameters  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from ros_domains import pick_domain  # noqa: E402
 
 from solid_ros.core.config import SolidConfig  # noqa: E402
 
@@ -161,7 +161,7 @@ def _env(prefix: Path, domain: int) -> dict[str, str]:
 @pytest.fixture()
 def domain() -> Iterator[int]:
     old = os.environ.get('ROS_DOMAIN_ID')
-    value = random.randint(1, 100)
+    value = pick_domain()
     os.environ['ROS_DOMAIN_ID'] = str(value)
     yield value
     if old is None:

@@ -11,7 +11,6 @@ the others mapped. The client can also send garbage on the shared descriptor top
 from __future__ import annotations
 
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -28,6 +27,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy_msgs import make_cloud
+from ros_domains import pick_domain
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray, UInt8MultiArray
 from test_peer_link import _scan
@@ -61,7 +61,7 @@ class Robots:
     """The node processes and one in-test client that feeds them and listens."""
 
     def __init__(self, tmp: Path) -> None:
-        self.domain = random.randint(50, 200)
+        self.domain = pick_domain()
         self.env = {**os.environ, 'ROS_DOMAIN_ID': str(self.domain)}
         self.params = tmp / 'fleet.yaml'
         self.params.write_text(PARAMS)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import array
 import os
-import random
 import subprocess
 import sys
 import time
@@ -25,6 +24,7 @@ from rclpy.qos import (  # noqa: E402
     QoSProfile,
     ReliabilityPolicy,
 )
+from ros_domains import pick_domain  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from spinning import Spinner  # noqa: E402
 from std_msgs.msg import Int32  # noqa: E402
@@ -136,7 +136,7 @@ def _small_before_large(phase: str, sender: Node, large_from: Any, count: int) -
                     reason='a Fast DDS profile is set: the default 512 KB segment may not apply')
 def test_a_large_message_from_the_bulk_participant_does_not_lose_the_owners_small_ones(
         contexts: list[Context], monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(random.randint(101, 200)))
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(pick_domain()))
     reader = subprocess.Popen([sys.executable, '-c', _READER], stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)
     assert reader.stdin is not None and reader.stdout is not None

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import array
 import os
-import random
 import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -33,6 +32,7 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy_msgs import make_cloud  # noqa: E402
+from ros_domains import pick_domain  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from spinning import Spinner  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
@@ -57,7 +57,7 @@ NO_DROP = [Parameter('qos_reliability', value='reliable'), Parameter('qos_depth'
 @pytest.fixture(scope='module', autouse=True)
 def domain_id() -> Iterator[None]:
     old = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
+    os.environ['ROS_DOMAIN_ID'] = str(pick_domain())
     yield
     if old is None:
         os.environ.pop('ROS_DOMAIN_ID', None)

@@ -6,7 +6,6 @@ Real rclpy: the node and a client node in one context, services called over DDS.
 from __future__ import annotations
 
 import os
-import random
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,6 +21,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_domains import pick_domain  # noqa: E402
 from spinning import Spinner  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -32,7 +32,7 @@ from solid_ros.ros.node import SolidNode  # noqa: E402
 @pytest.fixture(scope='module', autouse=True)
 def domain_id() -> Iterator[None]:
     old = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(random.randint(101, 200))
+    os.environ['ROS_DOMAIN_ID'] = str(pick_domain())
     yield
     if old is None:
         os.environ.pop('ROS_DOMAIN_ID', None)

@@ -10,7 +10,6 @@ so what is tested is what the adapter carries and wires.
 from __future__ import annotations
 
 import os
-import random
 import time
 from collections.abc import Iterator
 from types import SimpleNamespace
@@ -23,6 +22,7 @@ pytest.importorskip('nav_msgs', reason='ROS 2 message packages are not installed
 
 from fleet_scenes import TwoRobots  # noqa: E402
 from polling import wait_until  # noqa: E402
+from ros_domains import pick_domain  # noqa: E402
 
 from solid_ros.core.backend.alignment import FleetAlignment  # noqa: E402
 from solid_ros.core.results import LoopCandidate  # noqa: E402
@@ -33,7 +33,7 @@ KEY = b'a fleet key of enough bytes 0123456789'
 @pytest.fixture(autouse=True)
 def domain_id() -> Iterator[None]:
     old = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
+    os.environ['ROS_DOMAIN_ID'] = str(pick_domain())
     yield
     if old is None:
         os.environ.pop('ROS_DOMAIN_ID', None)
