@@ -248,7 +248,8 @@ class SolidConfig(_Schema):
     margin_neighbourhood: int = _p(10, 'Scans within this index distance of the best match '
                                    'count as the same place for the margin test', low=0,
                                    high=1_000_000)
-    max_candidates: int = _p(1, 'Most loop candidates reported per query', low=1, high=100)
+    max_candidates: int = _p(1, 'Most loops reported per query to this session, and as many '
+                             'to a loaded map and to peers', low=1, high=100)
     min_loop_gap: int = _p(0, 'Queries between two accepted loops (0 = off)', low=0,
                            high=1_000_000)
     heading_match: str = _p('full', "Heading search: 'full' compares whole heading signatures "

@@ -48,7 +48,8 @@ before the candidates and the graph predicts the query from that step, not from 
 Acceptance with ``verify`` (see :mod:`solid_ros.core.verification.verifier`): every candidate goes
 through the coarse registration; those that pass are verified in order of coarse overlap,
 best first, until ``max_candidates`` distinct places (outside each other's
-``margin_neighbourhood``) are verified. Without ``verify``: candidates in distance order, each
+``margin_neighbourhood``) are verified; then a loaded map's hits, and peers', until as many
+of theirs are. Without ``verify``: candidates in distance order, each
 a distinct place, at most ``max_candidates``. In both modes nothing is published within
 ``min_loop_gap`` queries of the last published loop.
 
@@ -471,8 +472,8 @@ class LoopDetector:
                 continue
             if gap_blocked:
                 break
-            if sum(self._is_peer(t) == self._is_peer(c) for t in taken) >= cfg.max_candidates:
-                continue  # this robot's and its maps' places, and peers', each up to the cap
+            if sum(self._budget(t) == self._budget(c) for t in taken) >= cfg.max_candidates:
+                continue  # this robot's places, its maps' and peers', each up to the cap
             if any(c.match_session == t.match_session
                    and abs(c.match_index - t.match_index) <= cfg.margin_neighbourhood
                    for t in taken):
@@ -653,6 +654,16 @@ class LoopDetector:
             if gap_blocked or len(verified) >= self._config.max_candidates:
                 break
             self._register(proposal, query, group, clouds, results, yaws, verified)
+        # A loaded map's places have a budget of their own: a loop into the map is what
+        # places this session in it, and an own keyframe near the query that verified first
+        # left none to it (hku1's second half in its first half's map: 8 of the 15 revisits
+        # without a loop into the map had one that verifies at the reference pose).
+        own = self._config.session_id
+        mapped = [i for i, h in enumerate(hits) if not peer[i] and h.match.session != own]
+        if (not gap_blocked and mapped and len(verified) >= self._config.max_candidates
+                and not any(m.session != own for m in verified)):
+            self._register(proposal, query, [i for i in mapped if i not in results], clouds,
+                           results, yaws, [])
         # Peers' places have a budget of their own: the graph's near keyframes verify first
         # and would otherwise leave none to the inter-robot loops a fleet is placed by.
         found: list[Match] = []
@@ -679,6 +690,13 @@ class LoopDetector:
                 out.append(self._candidate(proposal, hit, yaws.get(i, 0.0), res))
         out.sort(key=lambda c: (not c.verified, -_nan_to(c.overlap, -1.0)))
         return out
+
+    def _budget(self, c: LoopCandidate) -> str:
+        """Whose places a loop counts against ``max_candidates``: this session's, a loaded
+        map's or a peer robot's."""
+        if c.match_session == self._config.session_id:
+            return 'own'
+        return 'peer' if self._is_peer(c) else 'map'
 
     def _is_peer(self, c: LoopCandidate) -> bool:
         """A loop to another robot's keyframe (not this session's, not a loaded map's)."""

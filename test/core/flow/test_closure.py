@@ -329,3 +329,27 @@ def test_a_relocalised_session_finds_the_saved_map_by_position(tmp_path: Path) -
     step = fresh.process(drive.scan(274).points, 101 * SEC,
                          OdomSample(101 * SEC, offset @ drive.pose(274)))
     assert step.scan.loops == () and (fresh.hint is None or len(fresh.hint.map_keys) == 0)
+
+
+def test_a_loop_into_the_loaded_map_is_not_crowded_out_by_an_own_one(tmp_path: Path) -> None:
+    """max_candidates holds for this session's places and the loaded map's apart: an own
+    keyframe that verifies first leaves the map its own loop, which is what places the
+    session in the map (hku1's second half in its first half's map: 8 of 15 revisits missed)."""
+    drive = _drive()
+    first = LoopClosure(LoopDetector(CFG))
+    for k, i in enumerate(DRIVE[:4]):
+        first.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC, drive.pose(i)))
+    first.save(tmp_path / 'map.npz')
+    offset = np.eye(4)
+    offset[:3, :3] = rot_z(np.pi / 2)
+    offset[:3, 3] = [50.0, -20.0, 0.0]
+    cfg = CFG.replace(session_id=1, exclude_recent_frames=1, max_candidates=1)
+    second = LoopClosure.load(tmp_path / 'map.npz', cfg)
+    for k, i in enumerate([273, 274, 275, 276, 277, 278]):
+        step = second.process(drive.scan(i).points, (100 + k) * SEC,
+                              OdomSample((100 + k) * SEC, offset @ drive.pose(i)))
+    loops = {c.match_session: c for c in step.scan.loops}
+    assert sorted(loops) == [0, 1]  # one of its own places, one of the map's
+    assert loops[0].match_index == 0
+    ref = np.linalg.solve(drive.pose(5), drive.pose(278))
+    assert np.linalg.norm(loops[0].matrix()[:3, 3] - ref[:3, 3]) < 0.3
