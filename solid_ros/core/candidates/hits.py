@@ -30,6 +30,7 @@ from solid_ros.core.candidates.position import (
     heading_tolerance_deg,
     knows_place,
     map_keyframes,
+    map_view_keyframes,
     near_keyframes,
     peer_keyframes,
     position_sigma,
@@ -56,10 +57,13 @@ STRAY_FLOOR_M = 1.0
 def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
                     database: DescriptorDatabase, own_seqs: Mapping[int, int],
                     views: Mapping[int, FloatArray], mount: Mount,
-                    map_seqs: Mapping[tuple[int, int], int] | None = None) -> list[Hit]:
+                    map_seqs: Mapping[tuple[int, int], int] | None = None,
+                    map_views: Mapping[tuple[int, int], FloatArray] | None = None
+                    ) -> list[Hit]:
     """The proposal's hits with the graph's guesses, then the keyframes near the query (or
     that saw its place) that the descriptor did not propose, then those of a loaded map near
-    it once the session is relocalised in that map (:func:`map_keyframes`). Aligned peers'
+    it (or that saw its place) once the session is relocalised in that map
+    (:func:`map_keyframes`, :func:`map_view_keyframes`). Aligned peers'
     keyframes come apart (:func:`placed_peer_hits`); the descriptor's peer hits get no guess.
 
     Args:
@@ -72,6 +76,7 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
         views: this session's keyframe index -> view centre (sensor frame).
         mount: the sensor's mount (guesses are registered in the levelled frames).
         map_seqs: a loaded map's ``(session, index)`` -> database sequence number.
+        map_views: a loaded map's ``(session, index)`` -> view centre (sensor frame).
     """
     cfg = config
     if proposal.pose is None or proposal.cloud_points is None:
@@ -87,6 +92,10 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     viewed = {c.index for c in seen}
     mapped = map_keyframes(hint, odom, cfg)
     mapped_near = {(c.session, c.index) for c in mapped}
+    mapped_seen: list[MapCandidate] = []
+    if own.centre is not None and map_views:
+        mapped_seen = map_view_keyframes(hint, odom, own.centre, extent(proposal.cloud_points),
+                                         map_views, cfg)
     hits = []
     for h in proposal.hits:
         T = own.guess(h, viewed)
@@ -102,9 +111,11 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     taken = {h.match.index for h in hits if h.match.session == cfg.session_id}
     out = hits + own.hits([(c, 'near') for c in near] + [(c, 'view') for c in seen], taken,
                           database, own_seqs)
-    if mapped and map_seqs:
+    if (mapped or mapped_seen) and map_seqs:
         out += own.map_hits(mapped, {(h.match.session, h.match.index) for h in out}, database,
                             map_seqs)
+        out += own.map_hits(mapped_seen, {(h.match.session, h.match.index) for h in out},
+                            database, map_seqs, near=False)
     return out
 
 
@@ -236,18 +247,18 @@ class _Placing:
         return Match(seq, index, session, stamp, distance)
 
     def map_hits(self, found: list[MapCandidate], taken: set[tuple[int, int]],
-                 database: DescriptorDatabase, map_seqs: Mapping[tuple[int, int], int]
-                 ) -> list[Hit]:
-        """Hits of the loaded map's keyframes near the query not ``taken``: source
-        ``'graph'``, the graph's guess first, the query's own sigma (the graph holds no joint
-        marginal with the fixed map)."""
+                 database: DescriptorDatabase, map_seqs: Mapping[tuple[int, int], int],
+                 near: bool = True) -> list[Hit]:
+        """Hits of the loaded map's keyframes near the query (``near``) or that saw its
+        place, not ``taken``: source ``'graph'``, the graph's guess first, the query's own
+        sigma (the graph holds no joint marginal with the fixed map)."""
         out = []
         for c in found:
             match = self._match(c.session, c.index, map_seqs.get((c.session, c.index)), taken,
                                 database)
             if match is not None:
                 out.append(Hit(match, math.nan, database.heading(match.seq).copy(), 'graph',
-                               self._mount.level_pose(c.T_mq), True, self.tol, False,
+                               self._mount.level_pose(c.T_mq), near, self.tol, not near,
                                self.sigma))
         return out
 
@@ -349,7 +360,7 @@ def graph_stray(hit: Hit, centre: FloatArray, config: SolidConfig, T_mq: FloatAr
             floor + config.graph_candidate_sigmas * sigma)
 
 
-def view_centre(cloud: FloatArray, mount: Mount) -> FloatArray:
+def view_centre(cloud: npt.ArrayLike, mount: Mount) -> FloatArray:
     """Centroid of a keyframe cloud (levelled frame) in the sensor frame."""
     centre = np.asarray(cloud, dtype=np.float64)[:, :3].mean(axis=0)
     return mount.to_sensor(centre)

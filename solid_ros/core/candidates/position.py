@@ -81,7 +81,8 @@ if TYPE_CHECKING:
 
 __all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'MapCandidate', 'PeerCandidate',
            'PeerPlacement', 'eligible', 'guess_deviation', 'heading_tolerance_deg',
-           'knows_place', 'map_keyframes', 'near_keyframes', 'peer_keyframes',
+           'knows_place', 'map_keyframes', 'map_view_keyframes', 'near_keyframes',
+           'peer_keyframes',
            'position_sigma', 'search_radius', 'view_keyframes']
 
 FloatArray = npt.NDArray[np.float64]
@@ -433,6 +434,49 @@ def map_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike,
     picked = np.flatnonzero(dist <= radius)
     picked = picked[np.argsort(dist[picked], kind='stable')][:config.graph_candidates]
     return [MapCandidate(int(hint.map_keys[k, 0]), int(hint.map_keys[k, 1]), float(dist[k]),
+                         np.linalg.solve(hint.map_poses[k], predicted)) for k in picked]
+
+
+def map_view_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike, view: npt.ArrayLike,
+                       extent: float, map_views: Mapping[tuple[int, int], FloatArray],
+                       config: SolidConfig) -> list[MapCandidate]:
+    """:func:`view_keyframes` in a loaded map once the session is relocalised in it: the
+    map's keyframes whose view centre lies near the query's (``distance_m``: between the view
+    centres), nearest first; none when the query's view is not one-sided. A narrow view
+    revisits a place from a few metres off, where the saved keyframes nearest the sensor look
+    elsewhere. Unlike :func:`view_keyframes`, a map keyframe proposed by position among them
+    does not stand for the others: on hku1's second half in its first half's map that rule
+    kept the cross-session revisit recall at 41 of 51, without it 45.
+
+    Args:
+        hint: the graph's estimate, with the placed map.
+        odom_pose: the query's 4x4 odometry pose.
+        view: its view centre (sensor frame, 3-vector).
+        extent: its view extent, metres.
+        map_views: the map keyframes' view centres (their sensor frames) by
+            ``(session, index)`` (a keyframe without one is not proposed).
+        config: ``graph_candidate*``.
+    """
+    c_q = np.asarray(view, dtype=np.float64).reshape(3)
+    if (config.graph_candidates <= 0 or len(hint.map_keys) == 0 or len(hint.indices) == 0
+            or not float(np.linalg.norm(c_q)) > extent):
+        return []
+    odom = np.asarray(odom_pose, dtype=np.float64)
+    predicted = hint.predict(odom)
+    keys = [(int(s), int(i)) for s, i in hint.map_keys.tolist()]
+    centres = np.full((len(keys), 3), np.nan)
+    for k, key in enumerate(keys):
+        c = map_views.get(key)
+        if c is not None:
+            centres[k] = c
+    seen = np.einsum('nij,nj->ni', hint.map_poses[:, :3, :3], centres) + hint.map_poses[:, :3, 3]
+    with np.errstate(invalid='ignore'):
+        dist = np.linalg.norm(seen - (predicted[:3, :3] @ c_q + predicted[:3, 3]), axis=1)
+    ok = np.isfinite(dist) & (dist <= search_radius(
+        hint.covariance, config, np.linalg.solve(hint.odom[-1], odom), c_q, extent))
+    picked = np.flatnonzero(ok)
+    picked = picked[np.argsort(dist[picked], kind='stable')][:config.graph_candidates]
+    return [MapCandidate(keys[k][0], keys[k][1], float(dist[k]),
                          np.linalg.solve(hint.map_poses[k], predicted)) for k in picked]
 
 

@@ -189,6 +189,10 @@ class LoopDetector:
         self._loaded = self.database.sessions() - {cfg.session_id}
         # A loaded map's keyframes by (session, index), for candidates by position in it.
         self._map_seqs = _loaded_seqs(self.database, self._loaded)
+        # Their view centres (from the clouds saved with them), for candidates by view in it.
+        self._map_views = {key: view_centre(cloud.points, self._mount)
+                           for key, seq in self._map_seqs.items()
+                           if (cloud := self.clouds.get(seq)) is not None and len(cloud.points)}
         # The step registered before the keyframe's candidates, by query index (with_step
         # hands it on instead of registering it again).
         self._step: tuple[int, LoopCandidate | None, float] | None = None
@@ -453,7 +457,8 @@ class LoopDetector:
         if hint is not None and cfg.graph_candidates > 0 and self.verifier is not None:
             hint = self._registered_hint(proposal, hint)
             proposal.hits = with_graph_hits(proposal, hint, cfg, self.database, self._own_seqs,
-                                            self._views, self._mount, self._map_seqs)
+                                            self._views, self._mount, self._map_seqs,
+                                            self._map_views)
             if structure is not None:
                 more = partial(shared_hits, proposal, hint, cfg, self.database,
                                self._own_seqs, self._mount, self._structures, structure)
@@ -862,6 +867,7 @@ class LoopDetector:
         """Forget every stored scan and cloud (the configuration stays)."""
         self.database = DescriptorDatabase(self._config)
         self._map_seqs = {}
+        self._map_views = {}
         self._peer_odom = {}
         self.clouds.clear()
         if self.verifier is not None:

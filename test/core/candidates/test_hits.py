@@ -250,3 +250,41 @@ def test_a_loaded_maps_descriptor_hit_is_judged_by_the_map_not_by_own_keyframes(
     for h in hits.values():
         hit_knows_place(h, np.array([5.0, 0.0, 0.0]), cfg, h.guess)
     assert asked == []
+
+
+def test_a_loaded_maps_keyframe_that_saw_the_place_joins_by_view() -> None:
+    """Session 1 stands at x = 29.5 looking along +x (its view centre about 5 m ahead). The
+    loaded map's keyframe 40 stands beside it (by position); keyframe 7 stands 30 m on,
+    turned round, and saw the same spot (by view): both join, 7 with the graph's guess."""
+    cfg = SolidConfig(session_id=1, exclude_recent_sec=0.0)
+    db = DescriptorDatabase(cfg)
+    rng = np.random.default_rng(2)
+
+    def pose(x: float, y: float = 0.0, yaw: float = 0.0) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = rot_z(yaw)
+        T[:2, 3] = (x, y)
+        return T
+
+    own = np.array([pose(float(i)) for i in range(30)])
+    seqs = {i: db.add(rng.random(40), rng.random(60), i * SEC) for i in range(30)}
+    placed = {(0, 40): pose(29.5, 1.0), (0, 7): pose(60.0, 0.0, math.pi)}
+    hint = GraphHint.of(np.arange(30), np.arange(30) * SEC, own, own, np.eye(4),
+                        np.diag([0.04] * 3 + [1e-4] * 3), None, placed)
+    cloud = np.array([[5.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, -1.0, 1.0]])
+    prop = Proposal(30, 30 * SEC, 30, np.zeros(60), cloud, pose=matrix_to_vector(pose(29.5)))
+    mount = Mount(cfg)
+    map_seqs = {(0, 40): seqs[3], (0, 7): seqs[4]}  # stored scans standing in for the map's
+    views = {(0, 40): view_centre(cloud, mount), (0, 7): view_centre(cloud, mount)}
+    views[(0, 7)] = np.array([60.0 - 29.5 - views[(0, 7)][0], 0.0, views[(0, 7)][2]])
+    hits = {h.match.index: h for h in with_graph_hits(prop, hint, cfg, db, seqs, {}, mount,
+                                                        map_seqs, views)
+            if h.match.session == 0}
+    assert sorted(hits) == [7, 40]
+    assert hits[40].near and not hits[40].view
+    assert hits[7].view and not hits[7].near and hits[7].source == 'graph'
+    assert hits[7].guess is not None
+    np.testing.assert_allclose(hits[7].guess[:2, 3], [30.5, 0.0], atol=1e-9)
+    # Without the map's view centres only keyframe 40 comes.
+    assert [h.match.index for h in with_graph_hits(prop, hint, cfg, db, seqs, {}, mount,
+                                                   map_seqs) if h.match.session == 0] == [40]

@@ -14,6 +14,8 @@ from solid_ros.core.candidates.position import (
     GraphHint,
     heading_tolerance_deg,
     knows_place,
+    map_keyframes,
+    map_view_keyframes,
     near_keyframes,
     position_sigma,
     search_radius,
@@ -198,6 +200,37 @@ def test_a_keyframe_that_saw_the_place_from_afar_is_proposed() -> None:
         CFG)}
     assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views,
                           CFG.replace(graph_candidates=0)) == []
+
+
+def test_a_loaded_maps_keyframe_that_saw_the_place_is_proposed_beside_those_near() -> None:
+    street, views = _street_hint()
+    # The street as a loaded map (session 0) this session is relocalised in; its own graph
+    # holds one keyframe, 100 m off.
+    placed = {(0, int(i)): street.poses[k] for k, i in enumerate(street.indices)}
+    hint = GraphHint.of([0], [0], [_pose(100.0)], [_pose(100.0)], np.eye(4), _cov(0.0),
+                        placed_map=placed)
+    map_views = {(0, i): c for i, c in views.items()}
+    # Driving east at x = 36.5, 1 m aside, seeing 20 m ahead: keyframes 18 and 19 stand near
+    # the sensor and saw what it sees; by view they come back too (those by position do not
+    # stand for the others in a map) ...
+    q = _pose(36.5, 1.0)
+    near = map_keyframes(hint, q, CFG)
+    assert [(c.session, c.index) for c in near][:2] == [(0, 18), (0, 19)]
+    seen = map_view_keyframes(hint, q, [20.0, 0.0, 0.0], 10.0, map_views, CFG)
+    assert [(c.session, c.index) for c in seen] == [(0, 18), (0, 19), (0, 17)]
+    np.testing.assert_allclose(seen[0].T_mq[:3, 3], [0.5, 1.0, 0.0], atol=1e-12)
+    # ... and when it looks back west from x = 60 it sees x = 40, which keyframe 10 saw: not
+    # near by position (20 m off), proposed by view, however many the position rule proposes.
+    back = _pose(60.0, 1.0, math.pi)
+    assert 10 not in {c.index for c in map_keyframes(hint, back, CFG)}
+    seen = map_view_keyframes(hint, back, [20.0, 0.0, 0.0], 10.0, map_views, CFG)
+    assert [c.index for c in seen] == [10, 9, 11]
+    np.testing.assert_allclose(seen[0].T_mq[:3, 3], [40.0, 1.0, 0.0], atol=1e-12)
+    # Nothing before the session is placed in the map, for a view all round, without views.
+    unplaced = GraphHint.of([0], [0], [_pose(100.0)], [_pose(100.0)], np.eye(4), _cov(0.0))
+    assert map_view_keyframes(unplaced, back, [20.0, 0.0, 0.0], 10.0, map_views, CFG) == []
+    assert map_view_keyframes(hint, back, [20.0, 0.0, 0.0], 25.0, map_views, CFG) == []
+    assert map_view_keyframes(hint, back, [20.0, 0.0, 0.0], 10.0, {}, CFG) == []
 
 
 def test_no_view_candidates_when_a_keyframe_by_position_saw_the_place() -> None:
