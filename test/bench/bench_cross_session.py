@@ -7,7 +7,7 @@ another day. Printed for session 1: its loops into the saved map (published, fal
 1 m / 3 deg of the reference relative pose; by source), and the cross-session revisit recall:
 its keyframes with a saved keyframe within 5 m (reference poses) that got a right loop into the
 map. ``--no-map-candidates`` runs session 1 without the saved map's keyframes as candidates by
-position (only the descriptor proposes from the map), for comparison; ``--both`` runs with
+position or view (only the descriptor proposes from the map), for comparison; ``--both`` runs with
 and without them. ``--report FILE`` writes what it printed with the date and commit.
 
 Usage: ``python test/bench/bench_cross_session.py [--split 157] [--no-map-candidates | --both]
