@@ -69,7 +69,7 @@ def test_round_trip_gives_identical_queries(tmp_path: Path) -> None:
 
 
 def test_new_session_queries_the_saved_one(tmp_path: Path) -> None:
-    from test_detector import place
+    from random_places import place
 
     cfg = SolidConfig().replace(search='brute', distance_threshold=0.02, verify=False)
     first = LoopDetector(cfg)

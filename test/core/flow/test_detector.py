@@ -10,6 +10,7 @@ import numpy.typing as npt
 import pytest
 from bad_inputs import unusable_clouds
 from project_paths import CONFIG_DIR
+from random_places import place
 
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.descriptor.solid import preprocess
@@ -19,15 +20,6 @@ from solid_ros.core.geometry import rpy_matrix
 from solid_ros.core.results import LoopCandidate
 
 SEC = 1_000_000_000
-
-
-def place(seed: int, n: int = 6000) -> npt.NDArray[np.float64]:
-    """A random 360-degree scene: walls of boxes at 5-60 m, ground and clutter."""
-    rng = np.random.default_rng(seed)
-    az = rng.uniform(0, 2 * np.pi, n)
-    r = rng.choice(rng.uniform(5, 60, 12), n) + rng.normal(0, 0.5, n)
-    z = rng.uniform(-1.7, 3.0, n)
-    return np.stack([r * np.cos(az), r * np.sin(az), z], axis=1)
 
 
 def rotz(points: npt.NDArray[np.float64], deg: float) -> npt.NDArray[np.float64]:
