@@ -437,6 +437,21 @@ def map_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike,
                          np.linalg.solve(hint.map_poses[k], predicted)) for k in picked]
 
 
+def _view_distances(poses: FloatArray, centres: Sequence[FloatArray | None],
+                    predicted: FloatArray, view: FloatArray) -> FloatArray:
+    """Distance from each keyframe's view centre (``centres``, in its sensor frame; None: it
+    has none, NaN out) placed at its pose to the query's ``view`` placed at ``predicted``."""
+    placed = np.full((len(centres), 3), np.nan)
+    for k, c in enumerate(centres):
+        if c is not None:
+            placed[k] = c
+    seen = np.einsum('nij,nj->ni', poses[:, :3, :3], placed) + poses[:, :3, 3]
+    with np.errstate(invalid='ignore'):
+        out: FloatArray = np.linalg.norm(seen - (predicted[:3, :3] @ view + predicted[:3, 3]),
+                                         axis=1)
+    return out
+
+
 def map_view_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike, view: npt.ArrayLike,
                        extent: float, map_views: Mapping[tuple[int, int], FloatArray],
                        config: SolidConfig) -> list[MapCandidate]:
@@ -464,14 +479,7 @@ def map_view_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike, view: npt.Arra
     odom = np.asarray(odom_pose, dtype=np.float64)
     predicted = hint.predict(odom)
     keys = [(int(s), int(i)) for s, i in hint.map_keys.tolist()]
-    centres = np.full((len(keys), 3), np.nan)
-    for k, key in enumerate(keys):
-        c = map_views.get(key)
-        if c is not None:
-            centres[k] = c
-    seen = np.einsum('nij,nj->ni', hint.map_poses[:, :3, :3], centres) + hint.map_poses[:, :3, 3]
-    with np.errstate(invalid='ignore'):
-        dist = np.linalg.norm(seen - (predicted[:3, :3] @ c_q + predicted[:3, 3]), axis=1)
+    dist = _view_distances(hint.map_poses, [map_views.get(key) for key in keys], predicted, c_q)
     ok = np.isfinite(dist) & (dist <= search_radius(
         hint.covariance, config, np.linalg.solve(hint.odom[-1], odom), c_q, extent))
     picked = np.flatnonzero(ok)
@@ -505,14 +513,8 @@ def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
         return []
     odom = np.asarray(odom_pose, dtype=np.float64)
     predicted = hint.predict(odom)
-    centres = np.full((len(hint.indices), 3), np.nan)
-    for k, j in enumerate(hint.indices.tolist()):
-        c = views.get(j)
-        if c is not None:
-            centres[k] = c
-    seen = np.einsum('nij,nj->ni', hint.poses[:, :3, :3], centres) + hint.poses[:, :3, 3]
-    with np.errstate(invalid='ignore'):
-        dist = np.linalg.norm(seen - (predicted[:3, :3] @ c_q + predicted[:3, 3]), axis=1)
+    dist = _view_distances(hint.poses, [views.get(j) for j in hint.indices.tolist()],
+                           predicted, c_q)
     ok = eligible(hint, query_index, stamp_ns, odom, config) & np.isfinite(dist)
     ok &= dist <= search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom),
                                 c_q, extent)

@@ -58,17 +58,24 @@ def test_process_runs_odometry_detector_and_graph_per_scan() -> None:
     assert [c.match_index for c in step.scan.loops] == [0]
 
 
-def test_save_load_relocalises_in_the_saved_map(tmp_path: Path) -> None:
+def _saved_map(tmp_path: Path) -> tuple[Drive, Path, np.ndarray]:
+    """Session 0 over the drive's first four scans, saved; and the odometry frame of a second
+    session that starts elsewhere: 50 m and 90 deg off."""
     drive = _drive()
     first = LoopClosure(LoopDetector(CFG))
     for k, i in enumerate(DRIVE[:4]):
         first.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC, drive.pose(i)))
     first.save(tmp_path / 'map.npz')
-    # A second session starts elsewhere: its odometry frame is 50 m and 90 deg off.
     offset = np.eye(4)
     offset[:3, :3] = rot_z(np.pi / 2)
     offset[:3, 3] = [50.0, -20.0, 0.0]
-    second = LoopClosure.load(tmp_path / 'map.npz', CFG.replace(session_id=1))
+    return drive, tmp_path / 'map.npz', offset
+
+
+def test_save_load_relocalises_in_the_saved_map(tmp_path: Path) -> None:
+    # A second session starts elsewhere: its odometry frame is 50 m and 90 deg off.
+    drive, saved, offset = _saved_map(tmp_path)
+    second = LoopClosure.load(saved, CFG.replace(session_id=1))
     step = second.process(drive.scan(273).points, 100 * SEC,
                           OdomSample(100 * SEC, offset @ drive.pose(273)))
     assert step.backend is not None and [o.reason for o in step.backend.loops] == ['anchor']
@@ -301,15 +308,8 @@ def _turn(deg: float) -> np.ndarray:
 def test_a_relocalised_session_finds_the_saved_map_by_position(tmp_path: Path) -> None:
     """Once a new session is relocalised in a loaded map, the map's keyframes near it are
     candidates by position as its own are: a revisit the descriptor misses is still found."""
-    drive = _drive()
-    first = LoopClosure(LoopDetector(CFG))
-    for k, i in enumerate(DRIVE[:4]):
-        first.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC, drive.pose(i)))
-    first.save(tmp_path / 'map.npz')
-    offset = np.eye(4)
-    offset[:3, :3] = rot_z(np.pi / 2)
-    offset[:3, 3] = [50.0, -20.0, 0.0]
-    second = LoopClosure.load(tmp_path / 'map.npz', CFG.replace(session_id=1))
+    drive, saved, offset = _saved_map(tmp_path)
+    second = LoopClosure.load(saved, CFG.replace(session_id=1))
     step = second.process(drive.scan(273).points, 100 * SEC,
                           OdomSample(100 * SEC, offset @ drive.pose(273)))
     assert step.backend is not None and [o.reason for o in step.backend.loops] == ['anchor']
@@ -324,7 +324,7 @@ def test_a_relocalised_session_finds_the_saved_map_by_position(tmp_path: Path) -
     ref = np.linalg.solve(drive.pose(5), drive.pose(274))
     assert np.linalg.norm(loop.matrix()[:3, 3] - ref[:3, 3]) < 0.3
     # Before the session is placed in the map, the map offers nothing by position.
-    fresh = LoopClosure.load(tmp_path / 'map.npz', CFG.replace(session_id=1,
+    fresh = LoopClosure.load(saved, CFG.replace(session_id=1,
                                                                distance_threshold=0.0))
     step = fresh.process(drive.scan(274).points, 101 * SEC,
                          OdomSample(101 * SEC, offset @ drive.pose(274)))
@@ -335,16 +335,9 @@ def test_a_loop_into_the_loaded_map_is_not_crowded_out_by_an_own_one(tmp_path: P
     """max_candidates holds for this session's places and the loaded map's apart: an own
     keyframe that verifies first leaves the map its own loop, which is what places the
     session in the map (hku1's second half in its first half's map: 8 of 15 revisits missed)."""
-    drive = _drive()
-    first = LoopClosure(LoopDetector(CFG))
-    for k, i in enumerate(DRIVE[:4]):
-        first.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC, drive.pose(i)))
-    first.save(tmp_path / 'map.npz')
-    offset = np.eye(4)
-    offset[:3, :3] = rot_z(np.pi / 2)
-    offset[:3, 3] = [50.0, -20.0, 0.0]
+    drive, saved, offset = _saved_map(tmp_path)
     cfg = CFG.replace(session_id=1, exclude_recent_frames=1, max_candidates=1)
-    second = LoopClosure.load(tmp_path / 'map.npz', cfg)
+    second = LoopClosure.load(saved, cfg)
     for k, i in enumerate([273, 274, 275, 276, 277, 278]):
         step = second.process(drive.scan(i).points, (100 + k) * SEC,
                               OdomSample((100 + k) * SEC, offset @ drive.pose(i)))
