@@ -127,6 +127,7 @@ class PoseGraph:
         self.config = config
         self._prior = {(int(s), int(i)): vector_to_matrix(pose_to_vector(p))
                        for (s, i), p in (prior_map or {}).items()}
+        self._placed: tuple[npt.NDArray[np.int64], FloatArray] | None = None
         # Loop outcomes so far (LoopOutcome reasons), and 'confirmed' / 'unconfirmed' for
         # pending loops taken or dropped later.
         self.counts: Counter[str] = Counter()
@@ -411,6 +412,20 @@ class PoseGraph:
         if self._last is None or not self._segs.tied(self._last.segment, MAP):
             return {}
         return dict(self._prior)
+
+    def placed_arrays(self) -> tuple[npt.NDArray[np.int64], FloatArray] | None:
+        """:meth:`placed_map` as read-only arrays, ``(M, 2)`` keys and ``(M, 4, 4)`` poses,
+        built once (None before the session is tied to the map): the pose graph's hint takes
+        them every keyframe, and converting the dict took 21 ms a keyframe in a map of
+        20,000 keyframes."""
+        if self._last is None or not self._segs.tied(self._last.segment, MAP):
+            return None
+        if self._placed is None:
+            keys = np.array(list(self._prior), dtype=np.int64).reshape(-1, 2)
+            poses = np.array(list(self._prior.values()), dtype=np.float64).reshape(-1, 4, 4)
+            keys.flags.writeable = poses.flags.writeable = False
+            self._placed = (keys, poses)
+        return self._placed
 
     def map_poses(self) -> dict[tuple[int, int], FloatArray]:
         """Map-frame poses by ``(session, index)``: this session's corrected keyframes and the

@@ -26,6 +26,7 @@ from solid_ros.core.candidates.position import (
     GraphHint,
     MapCandidate,
     PeerCandidate,
+    ViewCentres,
     guess_deviation,
     heading_tolerance_deg,
     knows_place,
@@ -58,7 +59,7 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
                     database: DescriptorDatabase, own_seqs: Mapping[int, int],
                     views: Mapping[int, FloatArray], mount: Mount,
                     map_seqs: Mapping[tuple[int, int], int] | None = None,
-                    map_views: Mapping[tuple[int, int], FloatArray] | None = None
+                    map_views: ViewCentres | None = None
                     ) -> list[Hit]:
     """The proposal's hits with the graph's guesses, then the keyframes near the query (or
     that saw its place) that the descriptor did not propose, then those of a loaded map near
@@ -76,7 +77,7 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
         views: this session's keyframe index -> view centre (sensor frame).
         mount: the sensor's mount (guesses are registered in the levelled frames).
         map_seqs: a loaded map's ``(session, index)`` -> database sequence number.
-        map_views: a loaded map's ``(session, index)`` -> view centre (sensor frame).
+        map_views: a loaded map's view centres (sensor frames).
     """
     cfg = config
     if proposal.pose is None or proposal.cloud_points is None:
@@ -93,7 +94,7 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     mapped = map_keyframes(hint, odom, cfg)
     mapped_near = {(c.session, c.index) for c in mapped}
     mapped_seen: list[MapCandidate] = []
-    if own.centre is not None and map_views:
+    if own.centre is not None and map_views is not None and len(map_views):
         mapped_seen = map_view_keyframes(hint, odom, own.centre, extent(proposal.cloud_points),
                                          map_views, cfg)
     hits = []

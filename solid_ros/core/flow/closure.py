@@ -218,7 +218,7 @@ class LoopClosure:
         self._hint = self._with_peers(GraphHint.from_keyframes(
             self.graph.keyframes(), state.correction, state.covariance,
             partial(self.graph.relative_covariance, index_b=state.index),
-            self.graph.placed_map()))
+            self.graph.placed_arrays()))
         return Step(result, odom, state, self._hint)
 
     def _with_peers(self, hint: GraphHint) -> GraphHint:

@@ -90,7 +90,7 @@ from solid_ros.core.candidates.hits import (
     view_centre,
     with_graph_hits,
 )
-from solid_ros.core.candidates.position import GraphHint
+from solid_ros.core.candidates.position import GraphHint, ViewCentres
 from solid_ros.core.candidates.proposal import Hit, Proposal
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.clouds import CloudStore, KeyframeCloud
@@ -190,9 +190,9 @@ class LoopDetector:
         # A loaded map's keyframes by (session, index), for candidates by position in it.
         self._map_seqs = _loaded_seqs(self.database, self._loaded)
         # Their view centres (from the clouds saved with them), for candidates by view in it.
-        self._map_views = {key: view_centre(cloud.points, self._mount)
-                           for key, seq in self._map_seqs.items()
-                           if (cloud := self.clouds.get(seq)) is not None and len(cloud.points)}
+        self._map_views = ViewCentres.of({
+            key: view_centre(cloud.points, self._mount) for key, seq in self._map_seqs.items()
+            if (cloud := self.clouds.get(seq)) is not None and len(cloud.points)})
         # The step registered before the keyframe's candidates, by query index (with_step
         # hands it on instead of registering it again).
         self._step: tuple[int, LoopCandidate | None, float] | None = None
@@ -867,7 +867,7 @@ class LoopDetector:
         """Forget every stored scan and cloud (the configuration stays)."""
         self.database = DescriptorDatabase(self._config)
         self._map_seqs = {}
-        self._map_views = {}
+        self._map_views = ViewCentres.of({})
         self._peer_odom = {}
         self.clouds.clear()
         if self.verifier is not None:

@@ -20,7 +20,7 @@ from solid_ros.core.candidates.hits import (
     with_graph_hits,
 )
 from solid_ros.core.candidates.peers import place_peer
-from solid_ros.core.candidates.position import GraphHint
+from solid_ros.core.candidates.position import GraphHint, ViewCentres
 from solid_ros.core.candidates.proposal import Hit, Proposal
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.descriptors import DescriptorDatabase
@@ -278,7 +278,7 @@ def test_a_loaded_maps_keyframe_that_saw_the_place_joins_by_view() -> None:
     views = {(0, 40): view_centre(cloud, mount), (0, 7): view_centre(cloud, mount)}
     views[(0, 7)] = np.array([60.0 - 29.5 - views[(0, 7)][0], 0.0, views[(0, 7)][2]])
     hits = {h.match.index: h for h in with_graph_hits(prop, hint, cfg, db, seqs, {}, mount,
-                                                        map_seqs, views)
+                                                        map_seqs, ViewCentres.of(views))
             if h.match.session == 0}
     assert sorted(hits) == [7, 40]
     assert hits[40].near and not hits[40].view

@@ -12,6 +12,7 @@ import pytest
 from solid_ros.core.candidates.position import (
     HEADING_FLOOR_DEG,
     GraphHint,
+    ViewCentres,
     heading_tolerance_deg,
     knows_place,
     map_keyframes,
@@ -209,7 +210,7 @@ def test_a_loaded_maps_keyframe_that_saw_the_place_is_proposed_beside_those_near
     placed = {(0, int(i)): street.poses[k] for k, i in enumerate(street.indices)}
     hint = GraphHint.of([0], [0], [_pose(100.0)], [_pose(100.0)], np.eye(4), _cov(0.0),
                         placed_map=placed)
-    map_views = {(0, i): c for i, c in views.items()}
+    map_views = ViewCentres.of({(0, i): c for i, c in views.items()})
     # Driving east at x = 36.5, 1 m aside, seeing 20 m ahead: keyframes 18 and 19 stand near
     # the sensor and saw what it sees; by view they come back too (those by position do not
     # stand for the others in a map) ...
@@ -230,7 +231,19 @@ def test_a_loaded_maps_keyframe_that_saw_the_place_is_proposed_beside_those_near
     unplaced = GraphHint.of([0], [0], [_pose(100.0)], [_pose(100.0)], np.eye(4), _cov(0.0))
     assert map_view_keyframes(unplaced, back, [20.0, 0.0, 0.0], 10.0, map_views, CFG) == []
     assert map_view_keyframes(hint, back, [20.0, 0.0, 0.0], 25.0, map_views, CFG) == []
-    assert map_view_keyframes(hint, back, [20.0, 0.0, 0.0], 10.0, {}, CFG) == []
+    assert map_view_keyframes(hint, back, [20.0, 0.0, 0.0], 10.0, ViewCentres.of({}),
+                              CFG) == []
+
+
+def test_view_centres_are_found_by_session_and_index_in_bulk() -> None:
+    views = ViewCentres.of({(2, 7): [1.0, 2.0, 3.0], (0, 7): [4.0, 5.0, 6.0],
+                            (0, 2**31 + 5): [7.0, 8.0, 9.0]})
+    keys = np.array([[0, 7], [1, 7], [2, 7], [0, 2**31 + 5], [0, 5]], dtype=np.int64)
+    np.testing.assert_array_equal(views.at(keys), [[4.0, 5.0, 6.0], [np.nan] * 3,
+                                                  [1.0, 2.0, 3.0], [7.0, 8.0, 9.0],
+                                                  [np.nan] * 3])
+    assert len(views) == 3 and len(ViewCentres.of({})) == 0
+    assert ViewCentres.of({}).at(keys).shape == (5, 3)
 
 
 def test_no_view_candidates_when_a_keyframe_by_position_saw_the_place() -> None:

@@ -315,6 +315,11 @@ def test_a_relocalised_session_finds_the_saved_map_by_position(tmp_path: Path) -
     assert step.backend is not None and [o.reason for o in step.backend.loops] == ['anchor']
     hint = second.hint
     assert hint is not None and hint.map_keys.tolist()[:1] == [[0, 0]]
+    # The placed map's arrays are built once and shared, read-only, by every hint after.
+    placed = second.graph.placed_arrays()
+    assert placed is not None and hint.map_keys is placed[0] and hint.map_poses is placed[1]
+    assert not placed[0].flags.writeable and not placed[1].flags.writeable
+    np.testing.assert_array_equal(placed[1][0], second.graph.placed_map()[(0, 0)])
     # The descriptor now proposes nothing: the map's keyframe 0 comes by position.
     second.detector.reconfigure(second.config.replace(distance_threshold=0.0))
     step = second.process(drive.scan(274).points, 101 * SEC,
@@ -329,6 +334,7 @@ def test_a_relocalised_session_finds_the_saved_map_by_position(tmp_path: Path) -
     step = fresh.process(drive.scan(274).points, 101 * SEC,
                          OdomSample(101 * SEC, offset @ drive.pose(274)))
     assert step.scan.loops == () and (fresh.hint is None or len(fresh.hint.map_keys) == 0)
+    assert fresh.graph is not None and fresh.graph.placed_arrays() is None
 
 
 def test_a_loop_into_the_loaded_map_is_not_crowded_out_by_an_own_one(tmp_path: Path) -> None:
