@@ -215,8 +215,8 @@ class LoopClosure:
         if self.fleet is not None:
             for loop in result.loops:
                 self.fleet.add(loop)
-        self._hint = self._with_peers(GraphHint.from_keyframes(
-            self.graph.keyframes(), state.correction, state.covariance,
+        self._hint = self._with_peers(GraphHint.of(
+            *self.graph.keyframe_arrays(), state.correction, state.covariance,
             partial(self.graph.relative_covariance, index_b=state.index),
             self.graph.placed_arrays()))
         return Step(result, odom, state, self._hint)

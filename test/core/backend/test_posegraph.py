@@ -359,6 +359,25 @@ def test_keyframes_carry_what_rebuilds_the_chain() -> None:
     assert pg.keyframes() == [] and np.array_equal(pg.correction(), np.eye(4))
 
 
+def test_keyframe_arrays_are_the_keyframes_exactly() -> None:
+    ref = square(170)
+    odo = drifting_odometry(ref, Drift())
+    pg = PoseGraph(CFG)
+    assert [len(a) for a in pg.keyframe_arrays()] == [0, 0, 0, 0]
+    feed(pg, odo, {165: (loop(ref, 165, 5),)})  # 170 rows: the arrays grew past 64 and 128
+    indices, stamps, poses, odom = pg.keyframe_arrays()
+    kfs = pg.keyframes()
+    np.testing.assert_array_equal(indices, [k.index for k in kfs])
+    np.testing.assert_array_equal(stamps, [k.stamp_ns for k in kfs])
+    np.testing.assert_array_equal(odom, [k.odom for k in kfs])
+    np.testing.assert_array_equal(poses, [k.pose for k in kfs])  # bit for bit
+    # They are copies: the graph's own rows stay as they were.
+    odom[0] = 0.0
+    np.testing.assert_array_equal(pg.keyframe_arrays()[3][0], odo[0])
+    pg.reset()
+    assert [len(a) for a in pg.keyframe_arrays()] == [0, 0, 0, 0]
+
+
 def test_a_long_loop_free_chain_stays_solvable() -> None:
     # 1,700 one-metre steps sideways while turning: the heading's uncertainty swings lever arms
     # of a kilometre; a Cholesky iSAM2 called this indeterminant at keyframe 1,657.
