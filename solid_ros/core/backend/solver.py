@@ -195,10 +195,8 @@ class GraphSolver:
         return T
 
     def estimate(self) -> dict[int, FloatArray]:
-        """Current estimate of every variable."""
-        est = self._isam.calculateEstimate()
-        for key in self.values:
-            self.values[key] = pose_matrix(est.atPose3(key))
+        """Current estimate of every variable (:meth:`estimate_arrays` by key)."""
+        self.estimate_arrays()
         return dict(self.values)
 
     def estimate_arrays(self) -> tuple[npt.NDArray[np.int64], FloatArray]:

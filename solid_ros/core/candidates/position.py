@@ -68,16 +68,12 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.backend.noise import model_covariance
 from solid_ros.core.config import SolidConfig
-
-if TYPE_CHECKING:
-    from solid_ros.core.results import Keyframe
 
 __all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'MapCandidate', 'PeerCandidate',
            'PeerPlacement', 'PlacedArrays', 'ViewCentres', 'eligible', 'guess_deviation',
@@ -187,19 +183,6 @@ class GraphHint:
                    _frozen(odom, np.float64, (n, 4, 4)),  # type: ignore[arg-type]
                    _frozen(correction, np.float64, (4, 4)), cov,  # type: ignore[arg-type]
                    relative, map_keys, map_poses)
-
-    @classmethod
-    def from_keyframes(cls, keyframes: Sequence[Keyframe], correction: npt.ArrayLike,
-                       covariance: npt.ArrayLike | None = None,
-                       relative: Callable[[int], FloatArray | None] | None = None,
-                       placed_map: (Mapping[tuple[int, int], npt.ArrayLike] | PlacedArrays
-                                    | None) = None) -> GraphHint:
-        """A hint from :meth:`~solid_ros.core.backend.posegraph.PoseGraph.keyframes` (and
-        :meth:`~solid_ros.core.backend.posegraph.PoseGraph.placed_map`)."""
-        return cls.of([k.index for k in keyframes], [k.stamp_ns for k in keyframes],
-                      np.array([k.pose for k in keyframes]).reshape(-1, 4, 4),
-                      np.array([k.odom for k in keyframes]).reshape(-1, 4, 4),
-                      correction, covariance, relative, placed_map)
 
     def map_pose_of(self, session: int, index: int) -> FloatArray | None:
         """A placed map keyframe's pose (None: not in the placed map)."""
