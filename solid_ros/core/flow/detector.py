@@ -126,6 +126,7 @@ from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
 from solid_ros.core.verification.registration import Query, coarsened, for_peers
 from solid_ros.core.verification.verifier import (
     TIGHT_GRID,
+    CoarseResult,
     Verification,
     Verifier,
 )
@@ -647,6 +648,7 @@ class LoopDetector:
         results: dict[int, Verification] = dict(fetched)
         yaws: dict[int, float] = {}
         verified: list[Match] = []
+        passed: dict[int, CoarseResult] = {}  # coarse results kept for the map's budget
         # The graph's near keyframes first: registered from its pose they mostly verify at
         # once, and the rest are then not needed (max_candidates); then those that saw the
         # query's place from elsewhere, then the descriptor's others, and last, asked only
@@ -658,7 +660,7 @@ class LoopDetector:
                       [i for i, h in enumerate(hits) if not (h.near or h.view or peer[i])]):
             if gap_blocked or len(verified) >= self._config.max_candidates:
                 break
-            self._register(proposal, query, group, clouds, results, yaws, verified)
+            self._register(proposal, query, group, clouds, results, yaws, verified, passed)
         # A loaded map's places have a budget of their own: a loop into the map is what
         # places this session in it, and an own keyframe near the query that verified first
         # left none to it (hku1's second half in its first half's map: 8 of the 15 revisits
@@ -668,7 +670,7 @@ class LoopDetector:
         if (not gap_blocked and mapped and len(verified) >= self._config.max_candidates
                 and not any(m.session != own for m in verified)):
             self._register(proposal, query, [i for i in mapped if i not in results], clouds,
-                           results, yaws, [])
+                           results, yaws, [], passed)
         # Peers' places have a budget of their own: the graph's near keyframes verify first
         # and would otherwise leave none to the inter-robot loops a fleet is placed by.
         found: list[Match] = []
@@ -753,9 +755,11 @@ class LoopDetector:
 
     def _register(self, proposal: Proposal, query: Query, group: list[int],
                   clouds: list[KeyframeCloud | None], results: dict[int, Verification],
-                  yaws: dict[int, float], verified: list[Match]) -> None:
+                  yaws: dict[int, float], verified: list[Match],
+                  passed: dict[int, CoarseResult] | None = None) -> None:
         """Coarse stage of the hits ``group``, then the fine stage in order of coarse overlap
-        until ``max_candidates`` distinct places are verified (``verified`` grows)."""
+        until ``max_candidates`` distinct places are verified (``verified`` grows); ``passed``
+        keeps the coarse results that passed for a later call (the map's own budget)."""
         verifier = self.verifier
         assert verifier is not None
         cfg = self._config
@@ -769,13 +773,17 @@ class LoopDetector:
                 continue
             # The graph's guess first; the heading hypotheses when drift put it too far off
             # (those a loop could keep: within the graph's heading tolerance of its guess).
-            starts = hypotheses_kept(hit, [y for y, _ in hyps])
-            c = verifier.coarse(query, (hit.match.session, hit.match.seq), clouds[i], starts,
-                                () if hit.guess is None else (hit.guess,))
+            c = None if passed is None else passed.get(i)
+            if c is None:
+                starts = hypotheses_kept(hit, [y for y, _ in hyps])
+                c = verifier.coarse(query, (hit.match.session, hit.match.seq), clouds[i],
+                                    starts, () if hit.guess is None else (hit.guess,))
             if c.rejection is not None:
                 results[i] = c.rejection
             else:
                 coarse.append((i, c))
+                if passed is not None:
+                    passed[i] = c
         coarse.sort(key=lambda ic: -ic[1].coarse_overlap)
         centre = query.points[:, :3].mean(axis=0) if len(query.points) else np.zeros(3)
         for i, c in coarse:
