@@ -113,10 +113,9 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     out = hits + own.hits([(c, 'near') for c in near] + [(c, 'view') for c in seen], taken,
                           database, own_seqs)
     if (mapped or mapped_seen) and map_seqs:
-        out += own.map_hits(mapped, {(h.match.session, h.match.index) for h in out}, database,
-                            map_seqs)
-        out += own.map_hits(mapped_seen, {(h.match.session, h.match.index) for h in out},
-                            database, map_seqs, near=False)
+        taken_map = {(h.match.session, h.match.index) for h in out}  # map_hits adds to it
+        out += own.map_hits(mapped, taken_map, database, map_seqs)
+        out += own.map_hits(mapped_seen, taken_map, database, map_seqs, near=False)
     return out
 
 
