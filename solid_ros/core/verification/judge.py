@@ -42,6 +42,10 @@ STAGES: tuple[Stage, ...] = ('coarse', 'fine', 'context')
 # that bar asks whether two views show one place, which the graph answered (views of a place
 # from another heading share less).
 KNOWN_PLACE_SHARE = 0.7
+# There, too, this many times the conflict bar: what changed since the last visit (a car
+# parked or gone, a door, furniture) puts a whole object into space the other scan saw
+# through, and whether the place is right the graph answered.
+KNOWN_PLACE_CONFLICT = 2.0
 # A candidate the graph proposed by position alone has no descriptor evidence: its alignment
 # must be this much better constrained than verify_min_constraint.
 GRAPH_CONSTRAINT_SHARE = 1.25
@@ -70,6 +74,7 @@ class Bars:
     known_place_overlap: float
     max_rmse: float
     max_conflict: float
+    known_place_conflict: float
     min_constraint: float
     min_spread: float
     single_object_overlap: float
@@ -93,6 +98,7 @@ def bars(config: SolidConfig, learned: Learned | None = None, step: bool = False
 
     - ``known_place_overlap``: ``KNOWN_PLACE_SHARE`` of ``verify_min_overlap``, where the pose
       graph predicted the place.
+    - ``known_place_conflict``: ``KNOWN_PLACE_CONFLICT`` times ``max_conflict``, there.
     - ``single_object_conflict``: half of ``max_conflict``: a pose that rests on one object
       the graph did not predict must show clearly less conflict than the bar.
     - ``max_drift_deg_per_probe``: ``verify_max_drift_deg`` per ``PROBE_DEG`` of restart turn.
@@ -131,6 +137,7 @@ def bars(config: SolidConfig, learned: Learned | None = None, step: bool = False
         known_place_overlap=KNOWN_PLACE_SHARE * c.verify_min_overlap,
         max_rmse=c.verify_max_rmse,
         max_conflict=max_conflict,
+        known_place_conflict=KNOWN_PLACE_CONFLICT * max_conflict,
         min_constraint=c.verify_min_constraint,
         min_spread=c.verify_min_spread,
         single_object_overlap=c.verify_single_object_overlap,
@@ -208,9 +215,14 @@ RULES: tuple[Rule, ...] = (
     Rule('rmse', 'fine', ('rmse',), lambda m, b: m.rmse <= b.max_rmse,
          lambda m, b: f'rmse {m.rmse:.3f} > {b.max_rmse:.3f} m',
          'the supporting points lie within verify_max_rmse of their planes (RMS)'),
-    Rule('conflict', 'fine', ('conflict',), lambda m, b: m.conflict <= b.max_conflict,
-         lambda m, b: f'conflict {m.conflict:.3f} > {b.max_conflict:.3f}',
-         'at most verify_max_conflict of either scan lies in space the other saw through'),
+    Rule('conflict', 'fine', ('conflict', 'known_place'),
+         lambda m, b: (m.conflict <= b.max_conflict
+                       or (m.conflict <= b.known_place_conflict and _flag(m.known_place))),
+         lambda m, b: (f'conflict {m.conflict:.3f} > {b.max_conflict:.3f}'
+                       + (f' (at the place the graph predicted {b.known_place_conflict:.3f})'
+                          if _flag(m.known_place) else '')),
+         'at most verify_max_conflict of either scan lies in space the other saw through '
+         '(KNOWN_PLACE_CONFLICT times it where the pose graph predicted the place)'),
     Rule('constraint', 'fine', ('constraint', 'known_place', 'constraint_near'),
          lambda m, b: (m.constraint >= b.min_constraint
                        or (_flag(m.known_place) and m.constraint_near >= b.min_constraint)),

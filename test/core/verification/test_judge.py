@@ -13,6 +13,7 @@ from solid_ros.core.results import EVIDENCE_FIELDS
 from solid_ros.core.verification.calibration import Learned
 from solid_ros.core.verification.judge import (
     DRIFT_OVER_MEASURED,
+    KNOWN_PLACE_CONFLICT,
     KNOWN_PLACE_SHARE,
     PINNED_M,
     RULES,
@@ -87,6 +88,20 @@ def test_a_known_place_asks_less_overlap_and_no_spread() -> None:
     assert judge(Measures(**known), BARS, 'fine').verified
     one_object = {**GOOD, 'spread': 0.0, 'overlap': 0.4}
     assert judge(Measures(**one_object), BARS, 'fine').reason == 'single_object'
+
+
+def test_a_known_place_tolerates_more_conflict_but_not_any() -> None:
+    # A car parked or gone since the last visit: more conflict than the bar, at the place the
+    # graph predicted.
+    changed = {**GOOD, 'conflict': 1.5 * BARS.max_conflict}
+    refused = judge(Measures(**{**changed, 'known_place': 0.0}), BARS, 'fine')
+    assert refused.reason == 'conflict' and 'graph' not in refused.detail
+    assert judge(Measures(**{**changed, 'known_place': 1.0}), BARS, 'fine').verified
+    beyond = {**GOOD, 'conflict': 1.01 * KNOWN_PLACE_CONFLICT * BARS.max_conflict,
+              'known_place': 1.0}
+    verdict = judge(Measures(**beyond), BARS, 'fine')
+    assert verdict.reason == 'conflict'
+    assert f'{BARS.known_place_conflict:.3f}' in verdict.detail
 
 
 def test_context_rules_pass_where_nothing_was_measured_and_refuse_what_disagrees() -> None:
