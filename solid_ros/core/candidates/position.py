@@ -421,8 +421,14 @@ def map_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike,
     predicted = hint.predict(odom)
     dist = np.linalg.norm(hint.map_poses[:, :3, 3] - predicted[:3, 3], axis=1)
     radius = search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom))
-    picked = np.flatnonzero(dist <= radius)
-    picked = picked[np.argsort(dist[picked], kind='stable')][:config.graph_candidates]
+    return _nearest_mapped(hint, dist <= radius, dist, predicted, config.graph_candidates)
+
+
+def _nearest_mapped(hint: GraphHint, ok: npt.NDArray[np.bool_], dist: FloatArray,
+                    predicted: FloatArray, count: int) -> list[MapCandidate]:
+    """:func:`_nearest` among the loaded map's keyframes."""
+    picked = np.flatnonzero(ok)
+    picked = picked[np.argsort(dist[picked], kind='stable')][:count]
     return [MapCandidate(int(hint.map_keys[k, 0]), int(hint.map_keys[k, 1]), float(dist[k]),
                          np.linalg.solve(hint.map_poses[k], predicted)) for k in picked]
 
@@ -514,10 +520,7 @@ def map_view_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike, view: npt.Arra
     dist = _view_distances(hint.map_poses, map_views.at(hint.map_keys), predicted, c_q)
     ok = np.isfinite(dist) & (dist <= search_radius(
         hint.covariance, config, np.linalg.solve(hint.odom[-1], odom), c_q, extent))
-    picked = np.flatnonzero(ok)
-    picked = picked[np.argsort(dist[picked], kind='stable')][:config.graph_candidates]
-    return [MapCandidate(int(hint.map_keys[k, 0]), int(hint.map_keys[k, 1]), float(dist[k]),
-                         np.linalg.solve(hint.map_poses[k], predicted)) for k in picked]
+    return _nearest_mapped(hint, ok, dist, predicted, config.graph_candidates)
 
 
 def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: npt.ArrayLike,
