@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.results import Descriptor, LoopCandidate, Match, Source
-from solid_ros.core.verification.registration import Query
+from solid_ros.core.verification.prepared import Query
 
 __all__ = ['Hit', 'Proposal']
 

@@ -123,7 +123,7 @@ from solid_ros.core.verification.calibration import Calibration
 from solid_ros.core.verification.judge import Bars, Measures, judge
 from solid_ros.core.verification.judge import bars as judge_bars
 from solid_ros.core.verification.mixed_pixels import drop_mixed_pixels
-from solid_ros.core.verification.registration import Query, coarsened, for_peers
+from solid_ros.core.verification.prepared import Query, coarsened, for_peers
 from solid_ros.core.verification.verifier import (
     TIGHT_GRID,
     CoarseResult,

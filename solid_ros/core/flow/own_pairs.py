@@ -32,7 +32,7 @@ from solid_ros.core.verification.calibration import (
     closes,
 )
 from solid_ros.core.verification.judge import judge
-from solid_ros.core.verification.registration import Query
+from solid_ros.core.verification.prepared import Query
 from solid_ros.core.verification.verifier import PoseMeasures, Verification, Verifier
 
 __all__ = ['OwnKeyframes', 'calibrate']

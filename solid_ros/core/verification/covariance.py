@@ -8,7 +8,7 @@ with ``delta = (tx, ty, tz, rx, ry, rz)`` in the query frame (ROS order), is
 the cluster-robust ("sandwich") covariance of the point-to-plane problem at the registration's
 pose. ``A = sum w J J^T`` is its information, each supporting point weighted by how well its
 query plane is defined (``w``, see
-:attr:`solid_ros.core.verification.registration.Support.weights`), and
+:attr:`solid_ros.core.verification.support.Support.weights`), and
 ``G = sum_c g_c g_c^T`` with ``g_c = sum w r J`` over the supporting points in coarse voxel
 ``c`` (``r`` the signed plane distance): points on one surface patch share their error, so
 their residuals are summed before squaring. It reads the pose's error from the residuals. On
@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.verification.registration import Support
+from solid_ros.core.verification.support import Support
 
 __all__ = ['MODEL_FLOOR', 'RESIDUAL_SCALE', 'TIGHT_RESIDUAL', 'support_covariance']
 
@@ -65,7 +65,7 @@ def support_covariance(sup: Support, scale: float = 1.0,
     ``residual_scale * inv(A) G inv(A)`` (``RESIDUAL_SCALE``; ``TIGHT_RESIDUAL`` of it for
     two tight-space keyframes) with ``A = sum w J J^T`` (the plane-weighted
     information) and ``G`` the supporting points' residual scores summed per coarse voxel
-    (:attr:`~solid_ros.core.verification.registration.Support.residual_scores`), times ``scale``;
+    (:attr:`~solid_ros.core.verification.support.Support.residual_scores`), times ``scale``;
     in no
     direction smaller than ``MODEL_FLOOR`` times the model covariance ``sigma^2 (W / P)
     inv(A)``.

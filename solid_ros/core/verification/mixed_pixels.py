@@ -3,7 +3,7 @@
 A LiDAR beam's footprint that straddles an edge (a shelf in front of a wall) returns a range
 between the two, or a trail of them (Livox sensors are known for it): points where there is
 no surface. Another scan of the same place from elsewhere sees straight through that space,
-so the free-space conflict test (:mod:`solid_ros.core.verification.registration`) counts them
+so the free-space conflict test (:mod:`solid_ros.core.verification.free_space`) counts them
 against a
 right alignment. On the simulator's cluttered room with mixed pixels at half of the edge rays,
 almost every conflicting point of a right alignment was one of them, and voxelising makes it

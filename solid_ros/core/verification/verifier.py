@@ -64,17 +64,14 @@ from solid_ros.core.verification.covariance import (
     support_covariance,
 )
 from solid_ros.core.verification.judge import PROBE_DEG, Bars, Measures, Verdict, bars, judge
+from solid_ros.core.verification.prepared import Query, RegistrationSettings, Source, coarsened
 from solid_ros.core.verification.registration import (
     Alignment,
-    Query,
-    RegistrationSettings,
-    Source,
-    Support,
     align_coarse,
     align_fine,
-    coarsened,
     settled,
 )
+from solid_ros.core.verification.support import Support
 
 __all__ = ['TIGHT_GRID', 'CoarseResult', 'Place', 'PoseMeasures', 'Verification', 'Verifier',
            'registration_settings']

@@ -13,7 +13,8 @@ from hdl64_scans import CFG, keyframe_points, scan, truth
 
 from solid_ros.core.geometry import rpy_matrix
 from solid_ros.core.verification.covariance import MODEL_FLOOR, support_covariance
-from solid_ros.core.verification.registration import Source, Support
+from solid_ros.core.verification.prepared import Source
+from solid_ros.core.verification.support import Support
 from solid_ros.core.verification.verifier import Verifier
 from solid_ros.tools.uncertainty import nees
 

@@ -31,14 +31,9 @@ from solid_ros.core.verification.covariance import (
 )
 from solid_ros.core.verification.judge import KNOWN_PLACE_SHARE as KNOWN_PLACE_OVERLAP
 from solid_ros.core.verification.judge import judge
-from solid_ros.core.verification.registration import (
-    Source,
-    Support,
-    align_fine,
-    coarsened,
-    free_space_conflict,
-    range_image,
-)
+from solid_ros.core.verification.prepared import Source, coarsened
+from solid_ros.core.verification.registration import align_fine
+from solid_ros.core.verification.support import Support
 from solid_ros.core.verification.verifier import PoseMeasures, Verifier, registration_settings
 from solid_ros.sim import DEMO_SENSORS, avia_like, cast_scan
 from solid_ros.sim.drive import Drive, DriveConfig, pose_matrix
@@ -677,24 +672,6 @@ def test_a_cloud_is_coarsened_only_from_a_finer_grid_and_keeps_structure_first()
     for same in (KeyframeCloud(fine.points, 400, 1.0), KeyframeCloud(fine.points, 400, 0.0),
                  KeyframeCloud(fine.points, 400, 2.0)):
         assert coarsened(same, 1.0) is same
-
-
-def test_free_space_conflict_counts_seen_through_points_unless_explained() -> None:
-    # A wall 10 m ahead seen over +-20 deg; three points 5 m ahead in seen-through space and
-    # one on the wall.
-    az = np.radians(np.linspace(-20.0, 20.0, 81))
-    el = np.radians(np.linspace(-10.0, 10.0, 41))
-    a, e = np.meshgrid(az, el)
-    wall = 10.0 * np.c_[np.cos(e.ravel()) * np.cos(a.ravel()),
-                        np.cos(e.ravel()) * np.sin(a.ravel()), np.sin(e.ravel())]
-    ranges = range_image(wall)
-    pts = np.array([[5.0, 0.0, 0.0], [5.0, 1.0, 0.0], [5.0, -1.0, 0.5], [10.0, 0.0, 0.0]])
-    assert free_space_conflict(pts, ranges, 1.0) == pytest.approx(0.75)
-    assert free_space_conflict(pts, ranges, 1.0, structure=2) == pytest.approx(1.0)
-    explained = np.array([True, False, False, False])
-    assert free_space_conflict(pts, ranges, 1.0, explained=explained) == pytest.approx(0.5)
-    # Directions the sensor saw nothing in do not count at all.
-    assert free_space_conflict(np.array([[0.0, 5.0, 0.0]]), ranges, 1.0) == 0.0
 
 
 def _corner(rng: np.random.Generator, n: int = 6000) -> FloatArray:
