@@ -18,10 +18,10 @@ import io
 import json
 import os
 import random
-import resource
 import subprocess
 import sys
 import time
+import tracemalloc
 import zipfile
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -446,7 +446,9 @@ def test_fuzz_malformed_inputs(tmp_path: Path, sources: dict[str, Path],
     rng = random.Random(SEED)
     tally = Tally()
     outcomes: Counter[str] = Counter()
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # What the inputs made it allocate: numpy reports its buffers to tracemalloc, touched or
+    # not (the process's peak RSS would hide one below an earlier peak, or one never touched).
+    tracemalloc.start()
 
     det = LoopDetector(CFG)
 
@@ -468,8 +470,9 @@ def test_fuzz_malformed_inputs(tmp_path: Path, sources: dict[str, Path],
         path = pdir / f'{i:03d}_{kind}.yaml'
         path.write_bytes(blob)
 
-        def params(p: Path = path) -> None:
-            outcomes['params refused' if _check_param_file(p, capsys) else 'params accepted'] += 1
+        def params(p: Path = path, k: str = kind) -> None:
+            outcomes[f'params {k} ' + ('refused' if _check_param_file(p, capsys)
+                                       else 'accepted')] += 1
         tally.check('parameter files', kind, params)
 
     db = LoopDetector(CFG)
@@ -484,8 +487,9 @@ def test_fuzz_malformed_inputs(tmp_path: Path, sources: dict[str, Path],
         path = ddir / f'{i:03d}_{kind}.npz'
         path.write_bytes(blob)
 
-        def database(p: Path = path) -> None:
-            outcomes['db refused' if _check_database(p, db.database) else 'db loaded'] += 1
+        def database(p: Path = path, k: str = kind) -> None:
+            outcomes[f'db {k} ' + ('refused' if _check_database(p, db.database)
+                                   else 'loaded')] += 1
         tally.check('database files', kind, database)
 
     bdir = tmp_path / 'bags'
@@ -497,16 +501,24 @@ def test_fuzz_malformed_inputs(tmp_path: Path, sources: dict[str, Path],
             outcomes['bag ' + _check_bag(n, b, tmp_path / 'out' / f'{k:03d}', capsys)] += 1
         tally.check('bags', name, bags)
 
-    grew_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before) / 1024
+    grew_mb = tracemalloc.get_traced_memory()[1] / 1e6
+    tracemalloc.stop()
     total, ok = sum(tally.tried.values()), sum(tally.survived.values())
     with capsys.disabled():
         print(f'\nfuzz (seed {SEED}): {total} tried, {ok} survived; '
               + ', '.join(f'{k} {tally.survived[k]}/{n}' for k, n in tally.tried.items())
               + '; ' + ', '.join(f'{k} {n}' for k, n in sorted(outcomes.items()))
-              + f'; peak RSS grew {grew_mb:.0f} MB')
+              + f'; peak allocation {grew_mb:.0f} MB')
     assert total >= 300
     assert not tally.failures, '\n'.join(tally.failures[:20])
     assert outcomes['clouds no usable point'] >= 40 and outcomes['clouds stored'] > 0
+    # What can never be a parameter file or a database is refused, every time it came up.
+    for family, kinds, ok in (('params', ('binary', 'empty', 'list', 'nested', 'node'),
+                               'accepted'),
+                              ('db', ('garbage', 'npy', 'text', 'truncate', 'drop', 'header'),
+                               'loaded')):
+        for k in kinds:
+            assert outcomes[f'{family} {k} refused'] > 0 and not outcomes[f'{family} {k} {ok}'], k
     assert grew_mb < 500
 
 

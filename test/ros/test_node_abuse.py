@@ -32,6 +32,7 @@ from test_node import (  # noqa: E402
 )
 
 from solid_ros.core.database.persistence import read_database  # noqa: E402
+from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 
 SEC = 1_000_000_000
 
@@ -157,6 +158,13 @@ def test_a_huge_cloud_is_thinned_to_max_points_per_cloud(
     s = h.node.stats
     assert (s.processed, s.downsampled, s.rejected, s.failed) == (2, 1, 0, 0)
     _latest_diag(h, 'clouds_downsampled', '1')
-    # Thinned deterministically: every k-th point.
+    # Thinned deterministically: every k-th point, as a detector given those alone describes.
     det = h.node._shared.detector
     assert det.database.size == 2 and np.isfinite(det.database.r_solid(0)).all()
+    step = -(-len(scene) // 2000)
+    alone = LoopDetector(h.node.solid_config)
+    alone.process(scene.astype(np.float32)[::step], SEC)
+    np.testing.assert_allclose(det.database.r_solid(0), alone.database.r_solid(0), rtol=1e-6)
+    whole = LoopDetector(h.node.solid_config)
+    whole.process(scene.astype(np.float32), SEC)
+    assert not np.allclose(det.database.r_solid(0), whole.database.r_solid(0), rtol=1e-6)

@@ -453,9 +453,10 @@ def test_hku1_with_reference_poses(shared_data: Path, tmp_path: Path) -> None:
     m = result.metrics
     assert m is not None
     assert m['queries_with_true_loop'] > 30
-    # The revisit (keyframes ~274-313 see ~19-34) is retrieved: well above chance.
-    assert m['recall_at_1'] > 0.2 and m['roc_auc'] > 0.4
-    assert 0.0 < m['f1_max'] <= 1.0 and m['f1_max_threshold'] is not None
+    # The revisit (keyframes ~274-313 see ~19-34) is retrieved: well above chance (0.54,
+    # 0.64 and 0.42 at 70b1272; a descriptor no better than chance scores 0.5 in ROC AUC).
+    assert m['recall_at_1'] > 0.45 and m['roc_auc'] > 0.6
+    assert m['f1_max'] > 0.35 and m['f1_max_threshold'] is not None
     # Published loops with the shipped preset: verified, with a usable relative pose.
     loops = result.report['loops']
     assert loops['precision'] >= 0.98 and loops['recall'] >= 0.5, loops
