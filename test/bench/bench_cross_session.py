@@ -6,9 +6,11 @@ KISS-ICP odometry over the clouds (its own frame and its own drift), as a robot 
 another day. Printed for session 1: its loops into the saved map (published, false: pose beyond
 1 m / 3 deg of the reference relative pose; by source), and the cross-session revisit recall:
 its keyframes with a saved keyframe within 5 m (reference poses) that got a right loop into the
-map. ``--no-map-candidates`` runs session 1 without the saved map's keyframes as candidates by
-position or view (only the descriptor proposes from the map), for comparison; ``--both`` runs with
-and without them. ``--report FILE`` writes what it printed with the date and commit.
+map, and for each one that did not, its candidates into the map at a right pose and the rule
+that refused each. ``--no-map-candidates`` runs session 1 without the saved map's keyframes as
+candidates by position or view (only the descriptor proposes from the map), for comparison;
+``--both`` runs with and without them. ``--report FILE`` writes what it printed with the date
+and commit.
 
 Usage: ``python test/bench/bench_cross_session.py [--split 157] [--no-map-candidates | --both]
 [--report FILE]``.
@@ -21,6 +23,7 @@ import sys
 import tempfile
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -75,6 +78,7 @@ def run(split: int, map_candidates: bool) -> None:
                       [first.detector.database.match_info(q)[2]
                        for q in first.detector.database.stored_seqs()]])
     loops, revisiting, found = [], 0, 0
+    misses: list[str] = []
     for s in scans[split:]:
         try:
             step = second.process(s.points, s.stamp_ns)
@@ -94,6 +98,8 @@ def run(split: int, map_candidates: bool) -> None:
             loops.append((c.source, t < 1.0 and r < 3.0))
             right |= t < 1.0 and r < 3.0
         found += revisit and right
+        if revisit and not right:
+            misses.append(_missed(step.scan, here, stamps, poses))
     graph = second.graph
     print(f"hku1 cut at cloud {split}: session 1 (KISS-ICP) in session 0's saved map, "
           f'map candidates {"on" if map_candidates else "off"}')
@@ -102,6 +108,25 @@ def run(split: int, map_candidates: bool) -> None:
           f'by source {dict(Counter(src for src, _ in loops))}')
     print(f'  revisit recall   {found}/{revisiting} = '
           f'{found / revisiting if revisiting else float("nan"):.3f}')
+    for line in misses:
+        print(f'  missed           {line}')
+
+
+def _missed(scan: Any, here: np.ndarray, stamps: np.ndarray, poses: np.ndarray) -> str:
+    """A revisiting keyframe without a right loop into the map: the candidates into the map
+    whose registered pose was right (within 1 m / 3 deg of the reference) and the rule that
+    refused each, or that none was."""
+    right = []
+    for c in scan.attempts:
+        if c.match_session != 0:
+            continue
+        ref = np.linalg.solve(_pose_at(stamps, poses, c.match_stamp_ns), here)
+        t, r = pose_error(c.matrix(), ref)
+        if t < 1.0 and r < 3.0:
+            right.append(f'map keyframe {c.match_index} ({c.source}) {t:.2f} m / {r:.1f} deg '
+                         f'off, refused: {c.detail or c.reason}')
+    return (f'keyframe {scan.query_index}: '
+            + ('; '.join(right) if right else 'no candidate into the map at a right pose'))
 
 
 def main() -> int:
