@@ -38,6 +38,7 @@ from solid_ros.core.candidates.position import (
     view_keyframes,
 )
 from solid_ros.core.candidates.proposal import Hit, Proposal
+from solid_ros.core.candidates.views import KeyframeViews
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.descriptors import DescriptorDatabase
 from solid_ros.core.descriptor.matching import cosine_distance
@@ -57,7 +58,7 @@ STRAY_FLOOR_M = 1.0
 
 def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
                     database: DescriptorDatabase, own_seqs: Mapping[int, int],
-                    views: Mapping[int, FloatArray], mount: Mount,
+                    views: KeyframeViews, mount: Mount,
                     map_seqs: Mapping[tuple[int, int], int] | None = None,
                     map_views: ViewCentres | None = None
                     ) -> list[Hit]:
@@ -74,7 +75,7 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
         config: the detector's settings.
         database: the descriptor database (the graph's keyframes' descriptors and headings).
         own_seqs: this session's keyframe index -> database sequence number.
-        views: this session's keyframe index -> view centre (sensor frame).
+        views: this session's keyframes' view centres (sensor frames).
         mount: the sensor's mount (guesses are registered in the levelled frames).
         map_seqs: a loaded map's ``(session, index)`` -> database sequence number.
         map_views: a loaded map's view centres (sensor frames).

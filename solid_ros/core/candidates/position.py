@@ -73,6 +73,7 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.backend.noise import model_covariance
+from solid_ros.core.candidates.views import KeyframeViews
 from solid_ros.core.config import SolidConfig
 
 __all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'MapCandidate', 'PeerCandidate',
@@ -524,7 +525,7 @@ def map_view_keyframes(hint: GraphHint, odom_pose: npt.ArrayLike, view: npt.Arra
 
 
 def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: npt.ArrayLike,
-                   view: npt.ArrayLike, extent: float, views: Mapping[int, FloatArray],
+                   view: npt.ArrayLike, extent: float, views: KeyframeViews,
                    config: SolidConfig, near: Sequence[int] = ()) -> list[GraphCandidate]:
     """The eligible keyframes whose view centre lies near the query's, nearest first
     (``distance_m``: between the view centres); none when one of ``near`` is among them or
@@ -537,8 +538,7 @@ def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
         odom_pose: its 4x4 odometry pose.
         view: its view centre (sensor frame, 3-vector).
         extent: its view extent, metres (see the module docstring).
-        views: view centres of earlier keyframes by index (a keyframe without one is not
-            proposed).
+        views: view centres of earlier keyframes (a keyframe without one is not proposed).
         config: ``graph_candidate*`` and the exclusion window.
         near: the keyframes already proposed by position.
     """
@@ -548,12 +548,7 @@ def view_keyframes(hint: GraphHint, query_index: int, stamp_ns: int, odom_pose: 
         return []
     odom = np.asarray(odom_pose, dtype=np.float64)
     predicted = hint.predict(odom)
-    centres = np.full((len(hint.indices), 3), np.nan)
-    for k, j in enumerate(hint.indices.tolist()):
-        c = views.get(j)
-        if c is not None:
-            centres[k] = c
-    dist = _view_distances(hint.poses, centres, predicted, c_q)
+    dist = _view_distances(hint.poses, views.at(hint.indices), predicted, c_q)
     ok = eligible(hint, query_index, stamp_ns, odom, config) & np.isfinite(dist)
     ok &= dist <= search_radius(hint.covariance, config, np.linalg.solve(hint.odom[-1], odom),
                                 c_q, extent)

@@ -92,6 +92,7 @@ from solid_ros.core.candidates.hits import (
 )
 from solid_ros.core.candidates.position import GraphHint, ViewCentres
 from solid_ros.core.candidates.proposal import Hit, Proposal
+from solid_ros.core.candidates.views import KeyframeViews
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.clouds import CloudStore, KeyframeCloud
 from solid_ros.core.database.descriptors import PEER_SEQ_BASE, DescriptorDatabase, unit_vector
@@ -176,9 +177,9 @@ class LoopDetector:
         # by verify (on another thread in the node, where the database's own map may move).
         self._own_seqs: dict[int, int] = {}
         # View centre (keyframe cloud centroid, sensor frame) of each own keyframe, by index,
-        # for candidates by what they saw (solid_ros.core.candidates.position); written and read
-        # alike.
-        self._views: dict[int, FloatArray] = {}
+        # for candidates by what they saw (solid_ros.core.candidates.position); written by
+        # propose, read by verify, as the sequence numbers.
+        self._views = KeyframeViews(cfg.capacity)
         # Coarse structure of each own keyframe, for candidates by what they share
         # (solid_ros.core.candidates.covisibility): kept only with the back end, for as many
         # keyframes as
@@ -413,9 +414,7 @@ class LoopDetector:
         while len(self._own_seqs) > cfg.capacity:
             del self._own_seqs[next(iter(self._own_seqs))]
         if cloud is not None and len(cloud):
-            self._views[q_index] = view_centre(cloud, self._mount)
-            while len(self._views) > cfg.capacity:
-                del self._views[next(iter(self._views))]
+            self._views.put(q_index, view_centre(cloud, self._mount))
         # A reset the odometry announces (KISS-ICP restarts where the last pose was) is no
         # jump, but its new segment is another frame all the same: no path runs across it.
         reset = (segment is not None and self._kf_segment is not None

@@ -22,6 +22,7 @@ from solid_ros.core.candidates.hits import (
 from solid_ros.core.candidates.peers import place_peer
 from solid_ros.core.candidates.position import GraphHint, ViewCentres
 from solid_ros.core.candidates.proposal import Hit, Proposal
+from solid_ros.core.candidates.views import KeyframeViews
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.descriptors import DescriptorDatabase
 from solid_ros.core.descriptor.mount import Mount
@@ -29,6 +30,8 @@ from solid_ros.core.geometry import matrix_to_vector, rot_z
 from solid_ros.core.results import Match
 
 SEC = 1_000_000_000
+
+NO_VIEWS = KeyframeViews(1)  # this session's view centres: none
 
 
 def test_a_known_place_takes_the_sigma_relative_to_the_match_when_there_is_one() -> None:
@@ -180,7 +183,7 @@ def _peer_scene(aligned: bool) -> tuple[list[Hit], np.ndarray, float]:
     query = pose(8.0, 1.0)
     cloud = np.array([[5.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, -1.0, 1.0]])
     prop = Proposal(30, 30 * SEC, 30, np.zeros(60), cloud, pose=matrix_to_vector(query))
-    prop.hits = with_graph_hits(prop, hint, cfg, db, seqs, {}, Mount(cfg))
+    prop.hits = with_graph_hits(prop, hint, cfg, db, seqs, NO_VIEWS, Mount(cfg))
     assert not [h for h in prop.hits if h.match.session == 1]  # they come apart, asked later
     return (placed_peer_hits(prop, hint, cfg, db, Mount(cfg)), T_own_peer @ peer_map[6],
             float(placed.sigma_m[6]))
@@ -241,7 +244,7 @@ def test_a_loaded_maps_descriptor_hit_is_judged_by_the_map_not_by_own_keyframes(
     prop = Proposal(30, 30 * SEC, 30, np.zeros(60), cloud, pose=matrix_to_vector(pose(29.5)))
     prop.hits = [Hit(Match(100 + k, k, 0, k * SEC, 0.1), math.nan,
                      np.zeros(60, np.float32), 'descriptor') for k in (40, 29)]
-    hits = {h.match.index: h for h in with_graph_hits(prop, hint, cfg, db, seqs, {},
+    hits = {h.match.index: h for h in with_graph_hits(prop, hint, cfg, db, seqs, NO_VIEWS,
                                                         Mount(cfg)) if h.match.session == 0}
     assert hits[40].guess is not None and hits[40].near and not hits[40].view
     assert hits[29].guess is not None and not hits[29].near and not hits[29].view
@@ -277,7 +280,7 @@ def test_a_loaded_maps_keyframe_that_saw_the_place_joins_by_view() -> None:
     map_seqs = {(0, 40): seqs[3], (0, 7): seqs[4]}  # stored scans standing in for the map's
     views = {(0, 40): view_centre(cloud, mount), (0, 7): view_centre(cloud, mount)}
     views[(0, 7)] = np.array([60.0 - 29.5 - views[(0, 7)][0], 0.0, views[(0, 7)][2]])
-    hits = {h.match.index: h for h in with_graph_hits(prop, hint, cfg, db, seqs, {}, mount,
+    hits = {h.match.index: h for h in with_graph_hits(prop, hint, cfg, db, seqs, NO_VIEWS, mount,
                                                         map_seqs, ViewCentres.of(views))
             if h.match.session == 0}
     assert sorted(hits) == [7, 40]
@@ -286,5 +289,5 @@ def test_a_loaded_maps_keyframe_that_saw_the_place_joins_by_view() -> None:
     assert hits[7].guess is not None
     np.testing.assert_allclose(hits[7].guess[:2, 3], [30.5, 0.0], atol=1e-9)
     # Without the map's view centres only keyframe 40 comes.
-    assert [h.match.index for h in with_graph_hits(prop, hint, cfg, db, seqs, {}, mount,
+    assert [h.match.index for h in with_graph_hits(prop, hint, cfg, db, seqs, NO_VIEWS, mount,
                                                    map_seqs) if h.match.session == 0] == [40]

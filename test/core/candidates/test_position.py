@@ -22,6 +22,7 @@ from solid_ros.core.candidates.position import (
     search_radius,
     view_keyframes,
 )
+from solid_ros.core.candidates.views import KeyframeViews
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.geometry import rot_z
 
@@ -180,12 +181,13 @@ def _street_hint() -> tuple[GraphHint, dict[int, npt.NDArray[np.float64]]]:
 
 def test_a_keyframe_that_saw_the_place_from_afar_is_proposed() -> None:
     hint, views = _street_hint()
+    own = KeyframeViews.of(views)
     # Driving back west at x = 60: the sensor sees x = 40, which keyframe 10 (x = 20) saw;
     # the keyframes beside the query (28-32) looked the other way.
     q = _pose(60.0, 1.0, math.pi)
     near = near_keyframes(hint, 100, 100 * 10**9, q, CFG)
     assert [c.index for c in near] == [30, 29, 31]  # the position rule: beside the query
-    seen = view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views, CFG)
+    seen = view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, own, CFG)
     assert [c.index for c in seen] == [10, 9, 11]
     np.testing.assert_allclose([c.distance_m for c in seen], [1.0, math.hypot(2.0, 1.0),
                                                               math.hypot(2.0, 1.0)])
@@ -194,12 +196,12 @@ def test_a_keyframe_that_saw_the_place_from_afar_is_proposed() -> None:
     np.testing.assert_allclose(seen[0].T_mq[:3, :3], rot_z(math.pi), atol=1e-12)
     # A view all round (its centre within its extent of the sensor, as a spinning sensor's):
     # the position rule stands for it, nothing by view.
-    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 25.0, views, CFG) == []
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 25.0, own, CFG) == []
     # A keyframe without a view centre is not proposed; nor anything when none is wanted.
     assert 10 not in {c.index for c in view_keyframes(
-        hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, {**views, 10: np.full(3, np.nan)},
-        CFG)}
-    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views,
+        hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0,
+        KeyframeViews.of({**views, 10: np.full(3, np.nan)}), CFG)}
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, own,
                           CFG.replace(graph_candidates=0)) == []
 
 
@@ -248,15 +250,16 @@ def test_view_centres_are_found_by_session_and_index_in_bulk() -> None:
 
 def test_no_view_candidates_when_a_keyframe_by_position_saw_the_place() -> None:
     hint, views = _street_hint()
+    own = KeyframeViews.of(views)
     # Driving east again at x = 20.5: the keyframes beside it see what it sees.
     q = _pose(20.5, 1.0)
     near = [c.index for c in near_keyframes(hint, 100, 100 * 10**9, q, CFG)]
     assert near[0] == 10
-    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, views, CFG,
+    assert view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0], 10.0, own, CFG,
                           near) == []
     # Without them the same keyframes come back by their view.
     assert [c.index for c in view_keyframes(hint, 100, 100 * 10**9, q, [20.0, 0.0, 0.0],
-                                            10.0, views, CFG)] == near
+                                            10.0, own, CFG)] == near
 
 
 def test_the_view_radius_grows_with_the_heading_uncertainty_at_the_view_centre() -> None:
@@ -281,15 +284,16 @@ def test_the_view_radius_grows_with_the_heading_uncertainty_at_the_view_centre()
 
 def test_a_wide_view_reaches_as_far_as_its_extent() -> None:
     street, views = _street_hint()
+    own = KeyframeViews.of(views)
     # Keyframes 0-10 only (x = 0-20 m, their views centred at x = 20-40 m). Driving back west
     # at x = 72 the sensor sees around x = 52: 12 m beyond keyframe 10's view, 14 m beyond 9's.
     hint = GraphHint.of(street.indices[:11], street.stamps_ns[:11], street.poses[:11],
                         street.odom[:11], np.eye(4), _cov(0.0))
     q = _pose(72.0, 0.0, math.pi)
     # Beyond the 5 m floor ...
-    assert view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], 4.0, views, CFG) == []
+    assert view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], 4.0, own, CFG) == []
     # ... but within a view 14.5 m across (RMS): it saw much of the same stretch.
-    seen = view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], 14.5, views, CFG)
+    seen = view_keyframes(hint, 200, 200 * 10**9, q, [20.0, 0.0, 0.0], 14.5, own, CFG)
     assert [c.index for c in seen] == [10, 9]
     assert search_radius(_cov(0.0), CFG, floor=14.0) == pytest.approx(14.0)
     assert search_radius(_cov(1.0), CFG, floor=14.0) == pytest.approx(15.0)  # the cap
