@@ -26,7 +26,6 @@ from solid_ros.core.candidates.position import (
     GraphHint,
     MapCandidate,
     PeerCandidate,
-    ViewCentres,
     guess_deviation,
     heading_tolerance_deg,
     knows_place,
@@ -38,7 +37,7 @@ from solid_ros.core.candidates.position import (
     view_keyframes,
 )
 from solid_ros.core.candidates.proposal import Hit, Proposal
-from solid_ros.core.candidates.views import KeyframeViews
+from solid_ros.core.candidates.views import KeyframeViews, ViewCentres
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.descriptors import DescriptorDatabase
 from solid_ros.core.descriptor.matching import cosine_distance

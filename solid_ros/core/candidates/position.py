@@ -73,11 +73,11 @@ import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.backend.noise import model_covariance
-from solid_ros.core.candidates.views import KeyframeViews
+from solid_ros.core.candidates.views import KeyframeViews, ViewCentres
 from solid_ros.core.config import SolidConfig
 
 __all__ = ['HEADING_FLOOR_DEG', 'GraphCandidate', 'GraphHint', 'MapCandidate', 'PeerCandidate',
-           'PeerPlacement', 'PlacedArrays', 'ViewCentres', 'eligible', 'guess_deviation',
+           'PeerPlacement', 'PlacedArrays', 'eligible', 'guess_deviation',
            'heading_tolerance_deg', 'knows_place', 'map_keyframes', 'map_view_keyframes',
            'near_keyframes', 'peer_keyframes', 'position_sigma', 'search_radius',
            'view_keyframes']
@@ -432,52 +432,6 @@ def _nearest_mapped(hint: GraphHint, ok: npt.NDArray[np.bool_], dist: FloatArray
     picked = picked[np.argsort(dist[picked], kind='stable')][:count]
     return [MapCandidate(int(hint.map_keys[k, 0]), int(hint.map_keys[k, 1]), float(dist[k]),
                          np.linalg.solve(hint.map_poses[k], predicted)) for k in picked]
-
-
-@dataclass(frozen=True, eq=False)
-class ViewCentres:
-    """View centres (their sensor frames) of a loaded map's keyframes, looked up in bulk by
-    ``(session, index)``: a dictionary lookup per keyframe took 28 ms a query in a map of
-    20,000 keyframes.
-
-    Attributes:
-        codes: sorted ``session << 32 | index`` of the keyframes that have one.
-        centres: (M, 3) their view centres, in the order of ``codes``.
-    """
-
-    codes: IntArray
-    centres: FloatArray
-
-    @classmethod
-    def of(cls, views: Mapping[tuple[int, int], npt.ArrayLike]) -> ViewCentres:
-        """From view centres by ``(session, index)``."""
-        keys = np.array(list(views), dtype=np.int64).reshape(-1, 2)
-        centres = np.array([np.asarray(c, dtype=np.float64).reshape(3) for c in views.values()],
-                           dtype=np.float64).reshape(-1, 3)
-        codes = _codes(keys)
-        order = np.argsort(codes, kind='stable')
-        return cls(_frozen(codes[order], np.int64, (len(order),)),  # type: ignore[arg-type]
-                   _frozen(centres[order], np.float64, (len(order), 3)))  # type: ignore[arg-type]
-
-    def __len__(self) -> int:
-        return len(self.codes)
-
-    def at(self, keys: IntArray) -> FloatArray:
-        """(K, 3) view centres of ``keys`` ((K, 2) ``(session, index)``), NaN where none."""
-        out = np.full((len(keys), 3), np.nan)
-        if not len(self.codes) or not len(keys):
-            return out
-        codes = _codes(np.asarray(keys, dtype=np.int64).reshape(-1, 2))
-        pos = np.minimum(np.searchsorted(self.codes, codes), len(self.codes) - 1)
-        found = self.codes[pos] == codes
-        out[found] = self.centres[pos[found]]
-        return out
-
-
-def _codes(keys: IntArray) -> IntArray:
-    """``session << 32 | index`` of (K, 2) keys (indices below 2**32)."""
-    out: IntArray = (keys[:, 0] << 32) | (keys[:, 1] & 0xFFFFFFFF)
-    return out
 
 
 def _view_distances(poses: FloatArray, centres: FloatArray, predicted: FloatArray,

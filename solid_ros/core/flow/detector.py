@@ -90,9 +90,9 @@ from solid_ros.core.candidates.hits import (
     view_centre,
     with_graph_hits,
 )
-from solid_ros.core.candidates.position import GraphHint, ViewCentres
+from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Hit, Proposal
-from solid_ros.core.candidates.views import KeyframeViews
+from solid_ros.core.candidates.views import KeyframeViews, ViewCentres
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.clouds import CloudStore, KeyframeCloud
 from solid_ros.core.database.descriptors import PEER_SEQ_BASE, DescriptorDatabase, unit_vector

@@ -20,9 +20,9 @@ from solid_ros.core.candidates.hits import (
     with_graph_hits,
 )
 from solid_ros.core.candidates.peers import place_peer
-from solid_ros.core.candidates.position import GraphHint, ViewCentres
+from solid_ros.core.candidates.position import GraphHint
 from solid_ros.core.candidates.proposal import Hit, Proposal
-from solid_ros.core.candidates.views import KeyframeViews
+from solid_ros.core.candidates.views import KeyframeViews, ViewCentres
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.descriptors import DescriptorDatabase
 from solid_ros.core.descriptor.mount import Mount

@@ -12,7 +12,6 @@ import pytest
 from solid_ros.core.candidates.position import (
     HEADING_FLOOR_DEG,
     GraphHint,
-    ViewCentres,
     heading_tolerance_deg,
     knows_place,
     map_keyframes,
@@ -22,7 +21,7 @@ from solid_ros.core.candidates.position import (
     search_radius,
     view_keyframes,
 )
-from solid_ros.core.candidates.views import KeyframeViews
+from solid_ros.core.candidates.views import KeyframeViews, ViewCentres
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.geometry import rot_z
 
