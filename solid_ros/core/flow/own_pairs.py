@@ -32,8 +32,9 @@ from solid_ros.core.verification.calibration import (
     closes,
 )
 from solid_ros.core.verification.judge import judge
+from solid_ros.core.verification.measures import PoseMeasures
 from solid_ros.core.verification.prepared import Query
-from solid_ros.core.verification.verifier import PoseMeasures, Verification, Verifier
+from solid_ros.core.verification.verifier import Verification, Verifier
 
 __all__ = ['OwnKeyframes', 'calibrate']
 

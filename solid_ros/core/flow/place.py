@@ -1,6 +1,6 @@
 """What the detector knows of one candidate's place besides the clouds, for the judge.
 
-A :class:`HitPlace` answers the verifier's :class:`~solid_ros.core.verification.verifier.Place`
+A :class:`HitPlace` answers the verifier's :class:`~solid_ros.core.verification.measures.Place`
 questions for one hit: whether a pose puts the query where the pose graph predicted it, how
 far it is from this session's odometry and from the graph's guess, and what each allows. Poses
 are ``T_mq`` in the levelled frames.

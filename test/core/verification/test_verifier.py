@@ -31,10 +31,12 @@ from solid_ros.core.verification.covariance import (
 )
 from solid_ros.core.verification.judge import KNOWN_PLACE_SHARE as KNOWN_PLACE_OVERLAP
 from solid_ros.core.verification.judge import judge
+from solid_ros.core.verification.measures import PoseMeasures
 from solid_ros.core.verification.prepared import Source, coarsened
 from solid_ros.core.verification.registration import align_fine
+from solid_ros.core.verification.restarts import second_minimum
 from solid_ros.core.verification.support import Support
-from solid_ros.core.verification.verifier import PoseMeasures, Verifier, registration_settings
+from solid_ros.core.verification.verifier import Verifier, registration_settings
 from solid_ros.sim import DEMO_SENSORS, avia_like, cast_scan
 from solid_ros.sim.drive import Drive, DriveConfig, pose_matrix
 from solid_ros.sim.scene import Room, build_room
@@ -464,7 +466,8 @@ def test_a_second_minimum_along_the_street_is_refused(q: int, m: int) -> None:
     alone, sup = judge(measures, v.bars, 'fine'), measures.support
     assert alone.verified, alone
     assert 0.5 < _pose_errors(drive, q, m, np.linalg.inv(first))[0] < 1.5
-    other = v._second_minimum(query, coarse.source, first, sup)
+    other = second_minimum(query, coarse.source, first, sup, v.settings.voxel,
+                           cfg.verify_max_drift, cfg.verify_min_overlap)
     assert other is not None and _pose_errors(drive, q, m, np.linalg.inv(other))[0] < 0.1
 
 
@@ -746,31 +749,3 @@ def test_a_known_place_asks_less_overlap_of_the_two_views() -> None:
         known = v.fine(q, coarse, place=_At(lambda T, c: True)).reason
         assert (known != 'overlap') is passes, (share, known)
     assert KNOWN_PLACE_OVERLAP == pytest.approx(0.7)
-
-
-def test_a_second_minimum_where_the_candidates_own_overlap_falls_is_kept_out(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    # The foliage revisit of bench_generalisation: a far restart 1.5 m along the street where
-    # the smaller overlap (the query's) rose 0.48 -> 0.52 while the candidate's own fell
-    # 0.88 -> 0.67. Measures as the support gave them; the restart ends where it was started.
-    import solid_ros.core.verification.verifier as vmod
-
-    class _Sup:
-        def __init__(self, match: float, query: float) -> None:
-            self.overlap_match, self.overlap_query = match, query
-            self.overlap, self.rmse, self.conflict = min(match, query), 0.1, 0.0
-            self.information = np.diag([1.0, 1.0, 1.0, 1.0, 0.1, 1.0])
-
-    def fine(query: Any, src: Any, T_qm: np.ndarray, settings: Any) -> Any:
-        return vmod.Alignment(np.asarray(T_qm), True, 5)
-
-    v = Verifier(SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml'))
-    query = type('Q', (), {'settings': v.settings})()
-    here = _Sup(0.875, 0.482)
-    monkeypatch.setattr(vmod, 'align_fine', fine)
-    monkeypatch.setattr(vmod, 'Support', lambda *a: _Sup(0.669, 0.515))
-    assert v._second_minimum(query, None, np.eye(4), here) is None  # type: ignore[arg-type]
-    # Both overlaps higher: a better minimum, taken.
-    monkeypatch.setattr(vmod, 'Support', lambda *a: _Sup(0.9, 0.515))
-    other = v._second_minimum(query, None, np.eye(4), here)  # type: ignore[arg-type]
-    assert other is not None and np.linalg.norm(other[:2, 3]) > v.config.verify_max_drift
