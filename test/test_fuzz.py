@@ -34,7 +34,8 @@ import pytest
 from project_paths import CONFIG_DIR
 
 from solid_ros.core.config import SolidConfig
-from solid_ros.core.database.persistence import FORMAT, check_save_target, save_database
+from solid_ros.core.database.archive import FORMAT
+from solid_ros.core.database.persistence import check_save_target, save_database
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.formats.bags import write_cloud_bag

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.database.persistence import write_atomic
+from solid_ros.core.database.atomic import write_atomic
 from solid_ros.core.errors import SolidError
 
 __all__ = ['read_kitti_bin', 'read_pcd', 'read_points', 'write_pcd']

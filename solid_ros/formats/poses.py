@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from solid_ros.core.database.persistence import write_atomic
+from solid_ros.core.database.atomic import write_atomic
 from solid_ros.core.errors import PoseError
 from solid_ros.core.geometry import matrix_to_vector, vector_to_matrix
 

@@ -60,7 +60,8 @@ from visualization_msgs.msg import MarkerArray
 
 from solid_ros.core.backend.mapping import mount_rotation
 from solid_ros.core.config import NodeConfig, SolidConfig
-from solid_ros.core.database.persistence import check_save_target, remove_stale_temporaries
+from solid_ros.core.database.atomic import remove_stale_temporaries
+from solid_ros.core.database.persistence import check_save_target
 from solid_ros.core.errors import CloudError, ConfigError, DatabaseError, SolidError
 from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector

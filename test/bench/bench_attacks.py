@@ -62,8 +62,8 @@ from std_msgs.msg import Float64MultiArray, UInt8MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from test_node import read_bag, stamp_of  # noqa: E402
 
+from solid_ros.core.database.archive import read_database  # noqa: E402
 from solid_ros.core.database.clouds import KeyframeCloud  # noqa: E402
-from solid_ros.core.database.persistence import read_database  # noqa: E402
 from solid_ros.core.geometry import quaternion_to_matrix  # noqa: E402
 from solid_ros.formats.candidates import decode_candidates  # noqa: E402
 from solid_ros.formats.peers import (  # noqa: E402

@@ -31,7 +31,7 @@ from test_node import (  # noqa: E402
     make_odom,
 )
 
-from solid_ros.core.database.persistence import read_database  # noqa: E402
+from solid_ros.core.database.archive import read_database  # noqa: E402
 from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
 
 SEC = 1_000_000_000

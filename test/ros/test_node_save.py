@@ -25,7 +25,7 @@ from ros_domains import pick_domain  # noqa: E402
 from spinning import Spinner  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from solid_ros.core.database.persistence import is_database  # noqa: E402
+from solid_ros.core.database.archive import is_database  # noqa: E402
 from solid_ros.ros.node import SolidNode  # noqa: E402
 
 

@@ -21,16 +21,14 @@ import pytest
 from project_paths import CONFIG_DIR
 
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.database.archive import FORMAT, is_database, read_database
+from solid_ros.core.database.atomic import remove_stale_temporaries
 from solid_ros.core.database.descriptors import DescriptorDatabase
 from solid_ros.core.database.persistence import (
-    FORMAT,
     backup_if_shrinking,
     check_save_target,
-    is_database,
     load_database,
-    read_database,
     read_map_poses,
-    remove_stale_temporaries,
     save_database,
 )
 from solid_ros.core.errors import DatabaseError
