@@ -26,17 +26,19 @@ from solid_ros.core.candidates.position import (
     GraphHint,
     MapCandidate,
     PeerCandidate,
-    guess_deviation,
-    heading_tolerance_deg,
-    knows_place,
     map_keyframes,
     map_view_keyframes,
     near_keyframes,
     peer_keyframes,
-    position_sigma,
     view_keyframes,
 )
 from solid_ros.core.candidates.proposal import Hit, Proposal
+from solid_ros.core.candidates.tolerance import (
+    guess_deviation,
+    heading_tolerance_deg,
+    knows_place,
+    position_sigma,
+)
 from solid_ros.core.candidates.views import KeyframeViews, ViewCentres
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.database.descriptors import DescriptorDatabase
@@ -297,7 +299,7 @@ def _sigma_to(hint: GraphHint, index: int, config: SolidConfig, step: FloatArray
 
 def hit_knows_place(hit: Hit, centre: FloatArray, config: SolidConfig,
                     T_mq: FloatArray, coarse_voxel: float | None = None) -> bool:
-    """:func:`~solid_ros.core.candidates.position.knows_place` for a hit with a guess, with the
+    """:func:`~solid_ros.core.candidates.tolerance.knows_place` for a hit with a guess, with the
     query's sigma relative to the match keyframe where the graph gives it (``coarse_voxel``:
     the pair's coarse grid, when not the configuration's)."""
     assert hit.guess is not None

@@ -33,7 +33,7 @@ class Hit:
     ``heading_tol_deg``: how far a loop the graph proposed may turn from the guess;
     ``sigma_m``: the query's position sigma in the graph, its view centre as the lever;
     ``place_sigma``: the same relative to the match keyframe, asked of the graph only when
-    :func:`~solid_ros.core.candidates.position.knows_place` needs it (None: use ``sigma_m``)."""
+    :func:`~solid_ros.core.candidates.tolerance.knows_place` needs it (None: use ``sigma_m``)."""
 
     match: Match
     margin: float
