@@ -36,4 +36,4 @@ def truth(q: int, m: int) -> FloatArray:
 
 def keyframe_points(points: npt.ArrayLike, cfg: SolidConfig = CFG) -> FloatArray:
     """A scan's keyframe cloud on the configuration's grid, as the detector keeps it."""
-    return LoopDetector(cfg)._keyframe_points(points)
+    return LoopDetector(cfg)._proposer.keyframe_points(points)

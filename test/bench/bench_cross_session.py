@@ -73,7 +73,7 @@ def run(split: int, map_candidates: bool) -> None:
         first.save(path)
         second = LoopClosure.load(path, cfg.replace(session_id=1), KissOdometry(ncfg))
     if not map_candidates:
-        second.detector._map_seqs = {}
+        second.detector._stage.map_seqs = {}
     saved = np.array([_pose_at(stamps, poses, int(st))[:3, 3] for st in
                       [first.detector.database.match_info(q)[2]
                        for q in first.detector.database.stored_seqs()]])

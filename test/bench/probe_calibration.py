@@ -40,7 +40,8 @@ import numpy.typing as npt
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from solid_ros.core.flow.detector import LoopDetector  # noqa: E402
+from solid_ros.core.flow.state import DetectorState  # noqa: E402
+from solid_ros.core.flow.verify_stage import VerifyStage  # noqa: E402
 from solid_ros.core.geometry import angle_deg, vector_to_matrix  # noqa: E402
 from solid_ros.core.verification.calibration import AGREE_DEG, AGREE_M  # noqa: E402
 from solid_ros.tools.replay import load_config, replay  # noqa: E402
@@ -90,35 +91,36 @@ class Probe:
         self._queries: dict[int, Any] = {}
 
     def install(self) -> Callable[[], None]:
-        """Wrap :class:`LoopDetector`'s calibration and step; returns the undo."""
-        calibrate, step = LoopDetector._calibrate, LoopDetector._register_step
+        """Wrap the verification stage's calibration and step; returns the undo."""
+        calibrate, step = VerifyStage._calibrate, VerifyStage._register_step
         probe = self
 
-        def _calibrate(det: LoopDetector, proposal: Any) -> None:
+        def _calibrate(stage: VerifyStage, proposal: Any) -> None:
+            det = stage._state
             probe._stamps[proposal.query_index] = proposal.stamp_ns
             probe._queries[proposal.query_index] = proposal.query
             if (det.verifier is not None and proposal.query is not None
                     and proposal.query.usable and proposal.pose is not None
                     and det.calibration.wants(proposal.query_index)):
                 probe.pair(det, proposal)
-            calibrate(det, proposal)
+            calibrate(stage, proposal)
 
-        def _register_step(det: LoopDetector, proposal: Any) -> Any:
-            out = step(det, proposal)
-            probe.step(det, proposal, out)
+        def _register_step(stage: VerifyStage, proposal: Any) -> Any:
+            out = step(stage, proposal)
+            probe.step(stage._state, proposal, out)
             return out
 
-        LoopDetector._calibrate = _calibrate  # type: ignore[method-assign]
-        LoopDetector._register_step = _register_step  # type: ignore[method-assign]
+        VerifyStage._calibrate = _calibrate  # type: ignore[method-assign]
+        VerifyStage._register_step = _register_step  # type: ignore[method-assign]
 
         def undo() -> None:
-            LoopDetector._calibrate = calibrate  # type: ignore[method-assign]
-            LoopDetector._register_step = step  # type: ignore[method-assign]
+            VerifyStage._calibrate = calibrate  # type: ignore[method-assign]
+            VerifyStage._register_step = step  # type: ignore[method-assign]
         return undo
 
-    def leg(self, det: LoopDetector, k: int, a: int) -> Leg | None:
+    def leg(self, det: DetectorState, k: int, a: int) -> Leg | None:
         """Register keyframe k to a from the odometry's relative pose and score it."""
-        seq_k, seq_a = det._own_seqs.get(k), det._own_seqs.get(a)
+        seq_k, seq_a = det.own_seqs.get(k), det.own_seqs.get(a)
         query = self._queries.get(k)
         if seq_k is None or seq_a is None or query is None or det.verifier is None:
             return None
@@ -127,29 +129,29 @@ class Probe:
         if pose_k is None or pose_a is None or cloud is None:
             return None
         odo = np.linalg.solve(vector_to_matrix(pose_a), vector_to_matrix(pose_k))
-        guess = det._mount.level_pose(np.asarray(odo, dtype=np.float64))
+        guess = det.mount.level_pose(np.asarray(odo, dtype=np.float64))
         coarse = det.verifier.coarse(query, (det.config.session_id, seq_a), cloud, [], (guess,))
         if coarse.rejection is not None:
             return None
         m = det.verifier.measure(query, coarse)
-        truth = det._mount.level_pose(self.ref.relative(self._stamps[k], self._stamps[a]))
+        truth = det.mount.level_pose(self.ref.relative(self._stamps[k], self._stamps[a]))
         odo_err, ref_err = error(m.T_mq, guess), error(m.T_mq, truth)
         return {'converged': m.converged, 'overlap': m.overlap, 'conflict': m.conflict,
                 'odo_m': odo_err[0], 'odo_deg': odo_err[1], 'ref_m': ref_err[0],
                 'ref_deg': ref_err[1], 'T': m.T_mq}
 
-    def pair(self, det: LoopDetector, proposal: Any) -> None:
+    def pair(self, det: DetectorState, proposal: Any) -> None:
         """Score the calibration pair of this keyframe and its triangle."""
         k = proposal.query_index
-        partner = det._partner(k, proposal.pose)
+        partner = det.own.partner(k, proposal.pose)
         if partner is None:
             return
-        index = {s: i for i, s in det._own_seqs.items()}
+        index = {s: i for i, s in det.own_seqs.items()}
         a = index.get(partner[1])
         pose_a = None if a is None else det.database.pose(partner[1])
         if a is None or pose_a is None:
             return
-        further = det._partner(a, np.asarray(pose_a, dtype=np.float64))
+        further = det.own.partner(a, np.asarray(pose_a, dtype=np.float64))
         b = None if further is None else index.get(further[1])
         legs = {'ka': self.leg(det, k, a)}
         if b is not None and b in self._queries and a in self._queries:
@@ -162,7 +164,7 @@ class Probe:
             row['close_m'], row['close_deg'] = error(T['ab'] @ T['ka'], T['kb'])
         self.pairs.append(row)
 
-    def step(self, det: LoopDetector, proposal: Any, out: Any) -> None:
+    def step(self, det: DetectorState, proposal: Any, out: Any) -> None:
         """Score a registered step (None: refused)."""
         k = proposal.query_index
         if out is None or k - 1 not in self._stamps or k not in self._stamps:

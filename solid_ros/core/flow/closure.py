@@ -194,7 +194,8 @@ class LoopClosure:
     def verify(self, proposal: Proposal) -> ScanResult:
         """The proposal verified with the graph's hint (keyframe order); its loops are
         final, its registered step handed on by :meth:`commit` (registered here when the
-        graph predicts the query from it, see ``LoopDetector._registered_hint``)."""
+        graph predicts the query from it, see ``VerifyStage.registered_hint`` in
+        :mod:`solid_ros.core.flow.verify_stage`)."""
         return self.detector.verify(proposal, self._hint, step=False)
 
     def commit(self, proposal: Proposal, result: ScanResult,

@@ -3,7 +3,8 @@
 A :class:`HitPlace` answers the verifier's :class:`~solid_ros.core.verification.measures.Place`
 questions for one hit: whether a pose puts the query where the pose graph predicted it, how
 far it is from this session's odometry and from the graph's guess, and what each allows. Poses
-are ``T_mq`` in the levelled frames.
+are ``T_mq`` in the levelled frames. :func:`same_place` says when two matches are one place
+(the margins, and the distinct places ``max_candidates`` counts).
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ import numpy.typing as npt
 from solid_ros.core.candidates.hits import graph_stray, graph_turn, hit_knows_place
 from solid_ros.core.candidates.proposal import Hit
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.results import Match
 
-__all__ = ['HitPlace']
+__all__ = ['HitPlace', 'same_place']
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -60,3 +62,8 @@ class HitPlace:
     def position(self, T_mq: FloatArray, voxel: float) -> tuple[float, float]:
         """The view's distance from the graph's guess and what it allows."""
         return graph_stray(self.hit, self.centre, self.config, T_mq, voxel)
+
+
+def same_place(a: Match, b: Match, hood: int) -> bool:
+    """``a`` and ``b`` are one place: the same session, within ``hood`` indices."""
+    return a.session == b.session and abs(a.index - b.index) <= hood

@@ -476,7 +476,7 @@ def test_a_tight_keyframe_leaves_out_the_mixed_pixels() -> None:
     det.process(scan, 0)
     ((_, cloud),) = det.clouds.items()
     assert cloud.voxel == 0.5 * cfg.verify_voxel_size  # a tight space
-    plain = voxel_downsample(preprocess(scan, det._gate_cfg), cloud.voxel)
+    plain = voxel_downsample(preprocess(scan, det._proposer.gate_cfg), cloud.voxel)
 
     def off_surface(points: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         c, s = math.cos(yaw), math.sin(yaw)
@@ -512,7 +512,7 @@ def test_a_tilted_keyframe_is_gridded_upright_when_its_pose_says_so() -> None:
     held = LoopDetector(cfg)
     held.process(scan, 0, pose)
     ((_, cloud),) = held.clouds.items()
-    gated = preprocess(scan, held._gate_cfg)  # the range gate and FOV clip, no grid
+    gated = preprocess(scan, held._proposer.gate_cfg)  # the range gate and FOV clip, no grid
     occupied = len(np.unique(np.floor(gated @ tilt.T / cloud.voxel), axis=0))
     assert upright_cells(held) == (occupied, occupied)
     blind = LoopDetector(cfg)
@@ -568,7 +568,7 @@ def test_a_registered_step_places_the_query_where_a_runaway_odometry_did_not() -
         proposal.query = det.verifier.prepare(proposal.cloud_points)  # as verify() does
         hint = GraphHint.of([0], [SEC], first.pose[None], first.pose[None], np.eye(4),
                             np.eye(6) * 1e-4)
-        used = det._registered_hint(proposal, hint)
+        used = det._stage.registered_hint(proposal, hint)
         off = np.linalg.norm(used.predict(ran_away)[:3, 3] - second.pose[:3, 3])
         if mode == 'off':
             assert used is hint and off > 0.5  # the runaway: 0.58 m

@@ -361,8 +361,8 @@ def test_lookalike_street_through_a_90_degree_clip_is_refused(q: int, m: int) ->
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
                                              cfg.verify_hypotheses, cfg.heading_match)]
     v = Verifier(cfg)
-    query = v.prepare(det._keyframe_points(sq))
-    match = v.prepare(det._keyframe_points(sm)).keyframe_cloud()
+    query = v.prepare(det._proposer.keyframe_points(sq))
+    match = v.prepare(det._proposer.keyframe_points(sm)).keyframe_cloud()
     assert not v.fine(query, v.coarse(query, 'm', match, yaws)).verified
     # Some of these pairs stop at the shipped coarse screen (0.25) now; at the former 0.2 all
     # reach the fine stage, where the conflict test must refuse them.
@@ -426,8 +426,8 @@ def test_consistency_restarts_stay_within_reach_of_a_narrow_view_that_sees_far(
     cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
     drive = _demo_drive('avia_like', 'revisits', 'varied')
     det, v = LoopDetector(cfg), Verifier(cfg)
-    query = v.prepare(det._keyframe_points(drive.scan(q).points))
-    src = v.prepare(det._keyframe_points(drive.scan(m).points)).keyframe_cloud()
+    query = v.prepare(det._proposer.keyframe_points(drive.scan(q).points))
+    src = v.prepare(det._proposer.keyframe_points(drive.scan(m).points)).keyframe_cloud()
     ref = np.linalg.inv(drive.pose(m)) @ drive.pose(q)
     coarse = v.coarse(query, 'm', src, [math.atan2(ref[1, 0], ref[0, 0]) + 0.05])
     res = v.fine(query, coarse)
@@ -454,8 +454,9 @@ def test_a_second_minimum_along_the_street_is_refused(q: int, m: int) -> None:
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
                                              cfg.verify_hypotheses, cfg.heading_match)]
     det, v = LoopDetector(cfg), Verifier(cfg)
-    query = v.prepare(det._keyframe_points(sq))
-    coarse = v.coarse(query, 'm', v.prepare(det._keyframe_points(sm)).keyframe_cloud(), yaws)
+    query = v.prepare(det._proposer.keyframe_points(sq))
+    match = v.prepare(det._proposer.keyframe_points(sm)).keyframe_cloud()
+    coarse = v.coarse(query, 'm', match, yaws)
     res = v.fine(query, coarse)
     assert not res.verified and res.reason == 'unstable', res
     assert _pose_errors(drive, q, m, res.T)[0] < 0.1  # the tests ran on the right pose
@@ -497,8 +498,8 @@ def _verify_room_pair(q: int, m: int, guesses: tuple[FloatArray, ...] = (),
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
                                              cfg.verify_hypotheses, cfg.heading_match)]
     det, v = LoopDetector(cfg), Verifier(cfg)
-    query = v.prepare(det._keyframe_points(sq))
-    match = v.prepare(det._keyframe_points(sm)).keyframe_cloud()
+    query = v.prepare(det._proposer.keyframe_points(sq))
+    match = v.prepare(det._proposer.keyframe_points(sm)).keyframe_cloud()
     res = v.fine(query, v.coarse(query, 'm', match, yaws, guesses))
     return (res, *_errors(res.T, np.linalg.inv(pm) @ pq))
 
@@ -577,14 +578,16 @@ def test_a_tight_space_registers_on_the_tight_grid() -> None:
     det, v = LoopDetector(cfg), Verifier(cfg)
     (sq, pq), (sm, pm) = _room_scan(67), _room_scan(15)  # a lap apart, 0.6 m, 20 deg
     street = _demo_drive('avia_like', 'revisits', 'varied').scan(40).points
-    assert v.is_tight(det._keyframe_points(sq)) and v.is_tight(det._keyframe_points(sm))
-    assert not v.is_tight(det._keyframe_points(street))
-    assert not Verifier(cfg.replace(verify_tight_range=0.0)).is_tight(det._keyframe_points(sq))
+    assert v.is_tight(det._proposer.keyframe_points(sq))
+    assert v.is_tight(det._proposer.keyframe_points(sm))
+    assert not v.is_tight(det._proposer.keyframe_points(street))
+    loose = Verifier(cfg.replace(verify_tight_range=0.0))
+    assert not loose.is_tight(det._proposer.keyframe_points(sq))
     assert v.tight_settings.voxel == 0.5 * v.settings.voxel
     assert v.tight_settings.coarse_voxel == 0.5 * v.settings.coarse_voxel
 
-    query = v.prepare(det._keyframe_points(sq, tight=True), tight=True)
-    match = v.prepare(det._keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
+    query = v.prepare(det._proposer.keyframe_points(sq, tight=True), tight=True)
+    match = v.prepare(det._proposer.keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
     assert match.voxel == v.tight_settings.voxel
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
                                              cfg.verify_hypotheses, cfg.heading_match)]
@@ -600,11 +603,11 @@ def test_a_tight_space_registers_on_the_tight_grid() -> None:
         res.covariance, support_covariance(sup, 1.0, RESIDUAL_SCALE * TIGHT_RESIDUAL))
     assert not np.allclose(res.covariance, support_covariance(sup))
 
-    base_match = v.prepare(det._keyframe_points(sm)).keyframe_cloud()
+    base_match = v.prepare(det._proposer.keyframe_points(sm)).keyframe_cloud()
     mixed = v.coarse(query, 'b', base_match, yaws)
     assert mixed.query is not None and mixed.query.settings == v.settings
     assert mixed.query is query.on_grid(v.settings)  # downsampled once, then kept
-    base_query = v.prepare(det._keyframe_points(sq))
+    base_query = v.prepare(det._proposer.keyframe_points(sq))
     other = v.coarse(base_query, 't', match, yaws)
     assert other.query is base_query and other.source is not None
     assert len(other.source.points) == len(coarsened(match, v.settings.voxel).points)
@@ -617,8 +620,8 @@ def test_a_known_place_measures_the_heading_at_the_rooms_own_range() -> None:
     cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
     det, v = LoopDetector(cfg), Verifier(cfg)
     (sq, pq), (sm, pm) = _room_scan(71), _room_scan(18)
-    query = v.prepare(det._keyframe_points(sq, tight=True), tight=True)
-    match = v.prepare(det._keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
+    query = v.prepare(det._proposer.keyframe_points(sq, tight=True), tight=True)
+    match = v.prepare(det._proposer.keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
                                              cfg.verify_hypotheses, cfg.heading_match)]
     coarse = v.coarse(query, 'm', match, yaws)
@@ -652,8 +655,8 @@ def test_a_slide_along_the_rooms_structure_is_found_out_by_its_fit(q: int, m: in
     cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')
     det, v = LoopDetector(cfg), Verifier(cfg)
     (sq, pq), (sm, pm) = _room_scan(q), _room_scan(m)
-    query = v.prepare(det._keyframe_points(sq, tight=True), tight=True)
-    match = v.prepare(det._keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
+    query = v.prepare(det._proposer.keyframe_points(sq, tight=True), tight=True)
+    match = v.prepare(det._proposer.keyframe_points(sm, tight=True), tight=True).keyframe_cloud()
     yaws = [y for y, _ in heading_hypotheses(describe(sq, cfg).heading, describe(sm, cfg).heading,
                                              cfg.verify_hypotheses, cfg.heading_match)]
     coarse = v.coarse(query, 'm', match, yaws)
