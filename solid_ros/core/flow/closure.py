@@ -93,7 +93,9 @@ class LoopClosure:
     Args:
         detector: the loop detector (its configuration is the flow's).
         odometry: where :meth:`process` gets a pose when it is not given one (None: scans
-            without a sample have no pose).
+            without a sample have no pose). A KISS-ICP odometry (``name`` 'kiss_icp') turns
+            an 'auto' ``backend_step_registration`` on, any other off, as solid_replay and
+            solid_node resolve it (:meth:`SolidConfig.for_odometry`).
         graph: the pose graph; built from the detector's configuration when omitted and the
             back end is on.
         backend: whether the back end is on (default: the configuration's ``backend``); the
@@ -107,6 +109,8 @@ class LoopClosure:
                  graph: PoseGraph | None = None, *, backend: bool | None = None) -> None:
         self.detector = detector
         self.odometry = odometry
+        if odometry is not None:
+            detector.resolve_odometry(_scan_only(odometry))
         if graph is None and (detector.config.backend if backend is None else backend):
             from solid_ros.core.backend.posegraph import PoseGraph
 
@@ -133,6 +137,8 @@ class LoopClosure:
         Raises:
             DatabaseError: see :meth:`LoopDetector.load`.
         """
+        if odometry is not None:
+            config = config.for_odometry(_scan_only(odometry))
         detector = LoopDetector.load(path, config)
         graph = None
         if config.backend if backend is None else backend:
@@ -280,3 +286,8 @@ class LoopClosure:
         if self.graph is not None:
             self.graph.reset()
         self._new_fleet()  # its loops name keyframes that are gone
+
+
+def _scan_only(odometry: OdometrySource) -> bool:
+    """Whether ``odometry`` is KISS-ICP run here on the same clouds (a scan-only odometry)."""
+    return getattr(odometry, 'name', '') == 'kiss_icp'

@@ -151,6 +151,24 @@ class LoopDetector:
         if self._state.verifier is not None:
             self._state.verifier.reconfigure(config)
 
+    def resolve_odometry(self, scan_only: bool) -> None:
+        """Resolve the 'auto' settings for the odometry in use
+        (:meth:`SolidConfig.for_odometry`; ``scan_only``: KISS-ICP run on the same clouds).
+
+        Raises:
+            ConfigError: an 'auto' setting would change after the first keyframe.
+        """
+        config = self._state.config.for_odometry(scan_only)
+        if config == self._state.config:
+            return
+        if self.num_keyframes:
+            raise ConfigError("backend_step_registration: resolve 'auto' for the odometry "
+                              'before the first keyframe')
+        self._state.config = config
+        self._proposer.reconfigure(config)
+        if self._state.verifier is not None:
+            self._state.verifier.reconfigure(config)
+
     def is_keyframe(self, stamp_ns: int, pose: FloatArray | None = None) -> bool:
         """Whether a scan at ``stamp_ns`` (and ``pose`` as from :func:`pose_to_vector`)
         would be kept (see :meth:`Proposer.is_keyframe

@@ -22,8 +22,9 @@ graph's, and the descriptor's among them) are verified first, then those by view
 descriptor's other candidates only when they leave fewer than ``max_candidates`` places
 verified. Without a hint nothing changes.
 
-Registered steps (``backend_step_registration`` 'on'; 'auto' is resolved by the replay and the
-node: on with KISS-ICP run on the same clouds): :meth:`verify` registers the keyframe to this
+Registered steps (``backend_step_registration`` 'on'; 'auto' is resolved by the replay, the
+node and a :class:`~solid_ros.core.flow.closure.LoopClosure` given its odometry: on with
+KISS-ICP run on the same clouds): :meth:`verify` registers the keyframe to this
 session's previous one, started from the odometry step, through the same coarse and fine
 stages and tests except the single-object test (the place is known); with a hint it does so
 before the candidates and the graph predicts the query from that step, not from the odometry's

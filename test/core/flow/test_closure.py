@@ -11,6 +11,7 @@ import pytest
 from project_paths import CONFIG_DIR
 
 from solid_ros.core.config import SolidConfig
+from solid_ros.core.errors import ConfigError
 from solid_ros.core.flow.closure import LoopClosure
 from solid_ros.core.flow.detector import LoopDetector
 from solid_ros.core.geometry import rot_z
@@ -352,3 +353,32 @@ def test_a_loop_into_the_loaded_map_is_not_crowded_out_by_an_own_one(tmp_path: P
     assert loops[0].match_index == 0
     ref = np.linalg.solve(drive.pose(5), drive.pose(278))
     assert np.linalg.norm(loops[0].matrix()[:3, 3] - ref[:3, 3]) < 0.3
+
+
+def test_auto_step_registration_follows_the_odometry_given(tmp_path: Path) -> None:
+    # 'auto' means what solid_replay and solid_node make of it: registered steps with KISS-ICP
+    # run on the same clouds, none with an external odometry. A session built in Python with
+    # KISS-ICP once kept 'auto' unresolved (no registered step): its heading doubt in a loaded
+    # map grew 0.3 deg a keyframe between loops and no place there counted as known.
+    cfg = CFG.replace(backend_step_registration='auto')
+    assert cfg.backend_step_registration == 'auto'
+    kiss = StampedOdometry(SEC // 10, name='kiss_icp')  # only its name matters here
+    external = StampedOdometry(SEC // 10, name='bag')
+    closure = LoopClosure(LoopDetector(cfg), odometry=kiss)
+    assert closure.detector.config.backend_step_registration == 'on'
+    assert closure.graph is not None and closure.graph.config.backend_step_registration == 'on'
+    assert LoopClosure(LoopDetector(cfg), odometry=external).config.backend_step_registration \
+        == 'off'
+    assert LoopClosure(LoopDetector(cfg)).config.backend_step_registration == 'auto'
+    # A saved map loaded for a new session resolves it the same way, graph included.
+    first = LoopClosure(LoopDetector(cfg))
+    drive = _drive()
+    for k, i in enumerate(DRIVE):
+        first.process(drive.scan(i).points, k * SEC, OdomSample(k * SEC, drive.odometry(i)))
+    first.save(tmp_path / 'map.npz')
+    loaded = LoopClosure.load(tmp_path / 'map.npz', cfg.replace(session_id=1), kiss)
+    assert loaded.config.backend_step_registration == 'on'
+    assert loaded.graph is not None and loaded.graph.config.backend_step_registration == 'on'
+    # Once the session has keyframes the choice is made: resolving again cannot change it.
+    with pytest.raises(ConfigError, match='before the first keyframe'):
+        first.detector.resolve_odometry(True)
