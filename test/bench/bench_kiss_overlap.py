@@ -48,8 +48,9 @@ def run_kiss(clouds: list[Any], stamps: list[int]) -> list[Any]:
 
 def run_closure(clouds: list[Any], stamps: list[int], odoms: list[Any]) -> list[float]:
     """The loop closure on every cloud; its wall seconds per cloud."""
-    closure = LoopClosure(LoopDetector(SolidConfig.from_yaml(ROOT / 'config' / 'avia.yaml')),
-                          backend=True)
+    # Resolved as solid_node does with odometry_source kiss_icp: registered steps on.
+    cfg = SolidConfig.from_yaml(ROOT / 'config' / 'avia.yaml').for_odometry(True)
+    closure = LoopClosure(LoopDetector(cfg), backend=True)
     costs = []
     for points, stamp, odom in zip(clouds, stamps, odoms):
         t0 = time.perf_counter()
