@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import numpy.typing as npt
+from planar_poses import planar_pose as _pose
 
 from solid_ros.core.candidates.covisibility import (
     StructureIndex,
@@ -20,13 +21,6 @@ from solid_ros.core.geometry import rot_z
 CFG = SolidConfig(graph_candidates=2, graph_candidate_min_path_m=10.0, exclude_recent_frames=5,
                   verify_coarse_voxel_size=1.5, verify_min_overlap=0.35)
 SEC = 10**9
-
-
-def _pose(x: float, y: float = 0.0, yaw: float = 0.0) -> npt.NDArray[np.float64]:
-    T = np.eye(4)
-    T[:3, :3] = rot_z(yaw)
-    T[:2, 3] = (x, y)
-    return T
 
 
 def _facade(x0: float, x1: float, y: float) -> npt.NDArray[np.float64]:

@@ -7,6 +7,8 @@ import math
 import numpy as np
 import numpy.typing as npt
 import pytest
+from planar_poses import planar_pose as _pose
+from planar_poses import position_cov as _cov
 
 from solid_ros.core.candidates.position import (
     GraphHint,
@@ -23,17 +25,6 @@ from solid_ros.core.geometry import rot_z
 CFG = SolidConfig(graph_candidates=3, graph_candidate_radius_m=5.0, graph_candidate_sigmas=3.0,
                   graph_candidate_max_radius_m=15.0, graph_candidate_min_path_m=10.0,
                   exclude_recent_frames=5)
-
-
-def _pose(x: float, y: float = 0.0, yaw: float = 0.0) -> npt.NDArray[np.float64]:
-    T = np.eye(4)
-    T[:3, :3] = rot_z(yaw)
-    T[:2, 3] = (x, y)
-    return T
-
-
-def _cov(sigma_m: float) -> npt.NDArray[np.float64]:
-    return np.diag([sigma_m ** 2] * 3 + [1e-4] * 3)
 
 
 def _line(n: int, step: float = 1.0) -> GraphHint:

@@ -6,8 +6,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import numpy.typing as npt
 import pytest
+from planar_poses import planar_pose as _pose
+from planar_poses import position_cov as _cov
 
 from solid_ros.core.candidates.tolerance import (
     HEADING_FLOOR_DEG,
@@ -21,17 +22,6 @@ from solid_ros.core.geometry import rot_z
 
 CFG = SolidConfig(graph_candidate_radius_m=5.0, graph_candidate_sigmas=3.0,
                   graph_candidate_max_radius_m=15.0)
-
-
-def _pose(x: float, y: float = 0.0, yaw: float = 0.0) -> npt.NDArray[np.float64]:
-    T = np.eye(4)
-    T[:3, :3] = rot_z(yaw)
-    T[:2, 3] = (x, y)
-    return T
-
-
-def _cov(sigma_m: float) -> npt.NDArray[np.float64]:
-    return np.diag([sigma_m ** 2] * 3 + [1e-4] * 3)
 
 
 def test_radius_grows_with_the_covariance_from_the_floor_to_the_cap() -> None:
