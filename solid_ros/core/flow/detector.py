@@ -43,14 +43,14 @@ from solid_ros.core.flow.state import DetectorState
 from solid_ros.core.flow.verify_stage import VerifyStage
 from solid_ros.core.geometry import pose_to_vector, vector_to_matrix
 from solid_ros.core.odometry.track import OdometryPath
-from solid_ros.core.results import Descriptor, LoopCandidate, ScanResult, Source, StageTimes
+from solid_ros.core.results import Descriptor, ScanResult
 from solid_ros.core.stamps import check_stamp
 from solid_ros.core.verification.calibration import Calibration
 from solid_ros.core.verification.judge import Bars
 from solid_ros.core.verification.prepared import coarsened, for_peers
 from solid_ros.core.verification.verifier import Verifier
 
-__all__ = ['LoopCandidate', 'LoopDetector', 'Proposal', 'ScanResult', 'Source', 'StageTimes']
+__all__ = ['LoopDetector']
 
 FloatArray = npt.NDArray[np.float64]
 
