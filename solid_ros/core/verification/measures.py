@@ -20,6 +20,7 @@ import numpy.typing as npt
 from solid_ros.core.config import SolidConfig
 from solid_ros.core.verification.judge import Measures
 from solid_ros.core.verification.prepared import Query, Source
+from solid_ros.core.verification.restarts import drift
 from solid_ros.core.verification.support import Support
 
 __all__ = ['Place', 'PoseMeasures', 'VerifierLike']
@@ -53,13 +54,9 @@ class Place(Protocol):
 
 class VerifierLike(Protocol):
     """What the measures read of the verifier that took the pose (so that this module does not
-    import it): its settings, its consistency restarts and its loop covariance."""
+    import it): its settings and its loop covariance."""
 
     config: SolidConfig
-
-    def drift(self, query: Query, src: Source, T_qm: FloatArray,
-              info: FloatArray) -> tuple[float, float, float]:
-        """Consistency restarts: ``(drift_m, drift_deg, drift_turn_deg)``."""
 
     def covariance(self, sup: Support, query: Query) -> FloatArray | None:
         """The loop covariance of a support (ROS order), None where it is singular."""
@@ -70,7 +67,7 @@ class PoseMeasures(Measures):
     (and then kept: :func:`~solid_ros.core.verification.judge.evidence_of`).
 
     Args:
-        verifier: the verifier that took the pose (its settings and its restarts).
+        verifier: the verifier that took the pose (its settings and its covariance).
         query: the query on the pair's grid.
         src: the prepared candidate.
         T_qm: the pose (``p_query = T_qm p_match``, levelled frames).
@@ -149,7 +146,7 @@ class PoseMeasures(Measures):
     @cached_property
     def drift(self) -> tuple[float, float, float]:
         """(drift_m, drift_deg, drift_turn_deg) of the consistency restarts."""
-        out = self._verifier.drift(self._query, self._src, self.T_qm, self.support.information)
+        out = drift(self._query, self._src, self.T_qm, self.support.information)
         self.__dict__.update(drift_m=out[0], drift_deg=out[1], drift_turn_deg=out[2])
         return out
 

@@ -57,7 +57,7 @@ from solid_ros.core.verification.registration import (
     align_fine,
     settled,
 )
-from solid_ros.core.verification.restarts import drift, second_minimum
+from solid_ros.core.verification.restarts import second_minimum
 from solid_ros.core.verification.support import Support
 
 __all__ = ['TIGHT_GRID', 'CoarseResult', 'Verification', 'Verifier', 'registration_settings']
@@ -298,11 +298,6 @@ class Verifier:
         fine = align_fine(query, coarse.source, start.T_qm, query.settings)
         return PoseMeasures(self, query, coarse.source, fine.T_qm,
                             coarse.alignment.coarse_overlap, fine.converged, step)
-
-    def drift(self, query: Query, src: Source, T_qm: FloatArray,
-              info: FloatArray) -> tuple[float, float, float]:
-        """The consistency restarts' :func:`~solid_ros.core.verification.restarts.drift`."""
-        return drift(query, src, T_qm, info)
 
     def covariance(self, sup: Support, query: Query) -> FloatArray | None:
         """The loop covariance of a support (two tight-space keyframes: ``TIGHT_RESIDUAL``)."""

@@ -34,7 +34,7 @@ from solid_ros.core.verification.judge import judge
 from solid_ros.core.verification.measures import PoseMeasures
 from solid_ros.core.verification.prepared import Source, coarsened
 from solid_ros.core.verification.registration import align_fine
-from solid_ros.core.verification.restarts import second_minimum
+from solid_ros.core.verification.restarts import drift, second_minimum
 from solid_ros.core.verification.support import Support
 from solid_ros.core.verification.verifier import Verifier, registration_settings
 from solid_ros.sim import DEMO_SENSORS, avia_like, cast_scan
@@ -436,7 +436,7 @@ def test_consistency_restarts_stay_within_reach_of_a_narrow_view_that_sees_far(
     assert t_err < 0.1 and r_err < 0.5
     assert coarse.source is not None
     info = Support(query, coarse.source, np.linalg.inv(res.T), v.settings).information
-    turn = v.drift(query, coarse.source, np.linalg.inv(res.T), info)[2]
+    turn = drift(query, coarse.source, np.linalg.inv(res.T), info)[2]
     assert 0.5 < turn < 1.5  # one 0.5 m voxel at 20-57 m
 
 
