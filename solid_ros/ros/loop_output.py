@@ -68,7 +68,7 @@ class LoopOutput:
         here = verified.odom.pose[:3, 3]
         edges = []
         for c in verified.result.loops:
-            there = self._shared.match_position(c, verified.proposal, verified.detector)
+            there = self._shared.match_position(c, verified.detector)
             if there is not None:
                 edges.append((here.copy(), there, int(c.match_session) != self._session_id))
         return edges

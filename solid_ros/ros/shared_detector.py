@@ -157,19 +157,14 @@ class SharedDetector:
         stored then and dropped since counts as timed out; that takes a reset between)."""
         return self._fetched.get((robot, index, stamp_ns), 'peer_timeout')
 
-    def match_position(self, cand: LoopCandidate, proposal: Proposal,
-                       detector: LoopDetector) -> FloatArray | None:
+    def match_position(self, cand: LoopCandidate, detector: LoopDetector) -> FloatArray | None:
         """Position stored with the matched scan (any session), or None when unknown (or
         ``detector`` was replaced since it verified)."""
-        seq = next((h.match.seq for h in proposal.hits
-                    if (h.match.session, h.match.index) == (cand.match_session,
-                                                            cand.match_index)), None)
-        if seq is None:
-            return None
         # Under the stage-1 lock: it stores scans, and may evict this one meanwhile.
         with self._describe_lock:
             db = detector.database
-            if (detector is not self._detector or not db.is_stored(seq)
+            seq = detector.seq_of(cand.match_session, cand.match_index)
+            if (detector is not self._detector or seq is None or not db.is_stored(seq)
                     or db.match_info(seq)[:2] != (cand.match_index, cand.match_session)):
                 return None
             stored = db.pose(seq)

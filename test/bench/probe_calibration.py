@@ -95,15 +95,14 @@ class Probe:
         calibrate, step = VerifyStage._calibrate, VerifyStage._register_step
         probe = self
 
-        def _calibrate(stage: VerifyStage, proposal: Any) -> None:
+        def _calibrate(stage: VerifyStage, proposal: Any, query: Any) -> None:
             det = stage._state
             probe._stamps[proposal.query_index] = proposal.stamp_ns
-            probe._queries[proposal.query_index] = proposal.query
-            if (det.verifier is not None and proposal.query is not None
-                    and proposal.query.usable and proposal.pose is not None
+            probe._queries[proposal.query_index] = query
+            if (det.verifier is not None and query.usable and proposal.pose is not None
                     and det.calibration.wants(proposal.query_index)):
                 probe.pair(det, proposal)
-            calibrate(stage, proposal)
+            calibrate(stage, proposal, query)
 
         def _register_step(stage: VerifyStage, proposal: Any) -> Any:
             out = step(stage, proposal)

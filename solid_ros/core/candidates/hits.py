@@ -83,7 +83,7 @@ def with_graph_hits(proposal: Proposal, hint: GraphHint, config: SolidConfig,
     """
     cfg = config
     if proposal.pose is None or proposal.cloud_points is None:
-        return proposal.hits
+        return list(proposal.hits)
     odom = vector_to_matrix(proposal.pose)
     near = near_keyframes(hint, proposal.query_index, proposal.stamp_ns, odom, cfg)
     close = {c.index for c in near}

@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from solid_ros.core.results import Descriptor, LoopCandidate, Match, Source
-from solid_ros.core.verification.prepared import Query
 
 __all__ = ['Hit', 'Proposal']
 
@@ -48,9 +47,10 @@ class Hit:
     shared: bool = False
 
 
-@dataclass
+@dataclass(frozen=True)
 class Proposal:
-    """What ``LoopDetector.propose`` found for one keyframe, for ``verify``.
+    """What ``LoopDetector.propose`` found for one keyframe, for ``verify`` (which neither
+    changes it nor keeps it: its own candidates by position join a copy).
 
     Attributes:
         query_index: index of the keyframe in this session.
@@ -61,13 +61,12 @@ class Proposal:
         pose: its pose vector ``(x, y, z, qx, qy, qz, qw)``, when known.
         cloud_points: its keyframe cloud points (levelled, gated, clipped, voxelised), or
             None without verification.
-        tight: the cloud is on the tight-space grid (see ``verify_tight_range``).
         hits: descriptor candidates, nearest first.
         best: the nearest stored scan by descriptor, accepted or not.
         descriptor: its descriptor (None when given as a descriptor).
         describe_ms: time spent levelling and describing, milliseconds.
         search_ms: time spent searching and storing the descriptor, milliseconds.
-        query: its cloud prepared for registration (set by ``LoopDetector.verify``).
+        tight: the cloud is on the tight-space grid (see ``verify_tight_range``).
     """
 
     query_index: int
@@ -77,10 +76,9 @@ class Proposal:
     cloud_points: FloatArray | None
     r_solid: FloatArray | None = None
     pose: FloatArray | None = None
-    hits: list[Hit] = field(default_factory=list)
+    hits: tuple[Hit, ...] = ()
     best: LoopCandidate | None = None
     descriptor: Descriptor | None = None
     describe_ms: float = math.nan
     search_ms: float = math.nan
-    query: Query | None = None
     tight: bool = False

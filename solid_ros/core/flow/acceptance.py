@@ -135,23 +135,16 @@ class Acceptor:
             out.append(c)
         return out
 
-    def by_registration(self, proposal: Proposal, gap_blocked: bool,
+    def by_registration(self, proposal: Proposal, query: Query, gap_blocked: bool,
                         more: Callable[[], list[Hit]] | None = None,
                         placed: Callable[[], list[Hit]] | None = None
                         ) -> list[LoopCandidate]:
         """Verify the proposal's hits group by group until ``max_candidates`` places are
-        verified; ``more``: hits to try last, asked only if it comes to them; ``placed``:
-        aligned peers' keyframes by position, asked only when the peers' hits verified
-        nothing."""
+        verified; ``query``: its cloud prepared; ``more``: hits to try last, asked only if it
+        comes to them; ``placed``: aligned peers' keyframes by position, asked only when the
+        peers' hits verified nothing."""
         state = self._state
-        verifier = state.verifier
-        assert verifier is not None
         clouds, fetched = self._candidate_clouds(proposal, gap_blocked)
-        query = proposal.query
-        if query is None:
-            query = verifier.prepare(proposal.cloud_points if proposal.cloud_points is not None
-                                     else np.zeros((0, 3)), proposal.tight)
-            proposal.query = query
         if query.usable:
             state.clouds.put(proposal.seq, query.keyframe_cloud())
         state.clouds.drop_before(state.database.oldest_seq)
@@ -163,14 +156,15 @@ class Acceptor:
         # once, and the rest are then not needed (max_candidates); then those that saw the
         # query's place from elsewhere, then the descriptor's others, and last, asked only
         # now, those that share the query's structure.
-        hits = proposal.hits
+        hits = list(proposal.hits)
         peer = [h.match.seq >= PEER_SEQ_BASE for h in hits]
         for group in ([i for i, h in enumerate(hits) if h.near],
                       [i for i, h in enumerate(hits) if h.view and not h.near],
                       [i for i, h in enumerate(hits) if not (h.near or h.view or peer[i])]):
             if gap_blocked or len(verified) >= state.config.max_candidates:
                 break
-            self._register(proposal, query, group, clouds, results, yaws, verified, passed)
+            self._register(proposal, query, hits, group, clouds, results, yaws, verified,
+                           passed)
         # A loaded map's places have a budget of their own: a loop into the map is what
         # places this session in it, and an own keyframe near the query that verified first
         # left none to it (hku1's second half in its first half's map: 8 of the 15 revisits
@@ -179,26 +173,26 @@ class Acceptor:
         mapped = [i for i, h in enumerate(hits) if not peer[i] and h.match.session != own]
         if (not gap_blocked and mapped and len(verified) >= state.config.max_candidates
                 and not any(m.session != own for m in verified)):
-            self._register(proposal, query, [i for i in mapped if i not in results], clouds,
-                           results, yaws, [], passed)
+            self._register(proposal, query, hits, [i for i in mapped if i not in results],
+                           clouds, results, yaws, [], passed)
         # Peers' places have a budget of their own: the graph's near keyframes verify first
         # and would otherwise leave none to the inter-robot loops a fleet is placed by.
         found: list[Match] = []
         if not gap_blocked and any(peer):
-            self._register(proposal, query, [i for i in range(len(hits)) if peer[i]], clouds,
-                           results, yaws, found)
+            self._register(proposal, query, hits, [i for i in range(len(hits)) if peer[i]],
+                           clouds, results, yaws, found)
         if placed is not None and not gap_blocked and not found:
             start = len(hits)
-            hits = self._append_hits(proposal, placed(), clouds, results)
-            self._register(proposal, query, list(range(start, len(hits))), clouds, results,
-                           yaws, found)
+            self._append_hits(hits, placed(), clouds, results)
+            self._register(proposal, query, hits, list(range(start, len(hits))), clouds,
+                           results, yaws, found)
         if more is not None and not gap_blocked and len(verified) < state.config.max_candidates:
             extra = more()
             start = len(hits)
-            hits = proposal.hits = hits + extra
+            hits += extra
             clouds += [state.clouds.get(h.match.seq) for h in extra]
-            self._register(proposal, query, list(range(start, len(hits))), clouds, results,
-                           yaws, verified)
+            self._register(proposal, query, hits, list(range(start, len(hits))), clouds,
+                           results, yaws, verified)
         out = []
         for i, hit in enumerate(hits):
             res = results.get(i)
@@ -239,32 +233,32 @@ class Acceptor:
             cloud = got
         return cloud, None
 
-    def _append_hits(self, proposal: Proposal, extra: list[Hit],
+    def _append_hits(self, hits: list[Hit], extra: list[Hit],
                      clouds: list[KeyframeCloud | None],
-                     results: dict[int, Verification]) -> list[Hit]:
-        """``extra`` appended to the proposal's hits, their clouds (fetched) to ``clouds``
-        and the verdicts of those that did not come to ``results``; the hits."""
+                     results: dict[int, Verification]) -> None:
+        """``extra`` appended to ``hits``, their clouds (fetched) to ``clouds`` and the
+        verdicts of those that did not come to ``results``."""
         for h in extra:
             cloud, missing = self._cloud_of(h, False)
             if missing is not None:
                 results[len(clouds)] = missing
             clouds.append(cloud)
-        proposal.hits = proposal.hits + extra
-        return proposal.hits
+        hits += extra
 
-    def _register(self, proposal: Proposal, query: Query, group: list[int],
+    def _register(self, proposal: Proposal, query: Query, hits: list[Hit], group: list[int],
                   clouds: list[KeyframeCloud | None], results: dict[int, Verification],
                   yaws: dict[int, float], verified: list[Match],
                   passed: dict[int, CoarseResult] | None = None) -> None:
         """Coarse stage of the hits ``group``, then the fine stage in order of coarse overlap
-        until ``max_candidates`` distinct places are verified (``verified`` grows); ``passed``
+        until ``max_candidates`` distinct places are verified (``verified`` grows); ``hits``: the
+        proposal's and those joined since, by index; ``passed``
         keeps the coarse results that passed for a later call (the map's own budget)."""
         verifier = self._state.verifier
         assert verifier is not None
         cfg = self._state.config
         coarse = []
         for i in group:
-            hit = proposal.hits[i]
+            hit = hits[i]
             hyps = heading_hypotheses(proposal.heading, hit.heading, cfg.verify_hypotheses,
                                       cfg.heading_match)
             yaws[i] = hyps[0][0] if hyps else 0.0
@@ -286,7 +280,7 @@ class Acceptor:
         coarse.sort(key=lambda ic: -ic[1].coarse_overlap)
         centre = query.points[:, :3].mean(axis=0) if len(query.points) else np.zeros(3)
         for i, c in coarse:
-            hit = proposal.hits[i]
+            hit = hits[i]
             if len(verified) >= cfg.max_candidates:
                 break  # enough distinct places: the rest stay unverified ('skipped')
             if any(same_place(hit.match, v, cfg.margin_neighbourhood) for v in verified):

@@ -249,11 +249,11 @@ class LoopDetector:
         verification on and an odometry pose for the keyframe, the keyframes near it in the
         graph's estimate, or that saw its place, or that share its structure, join the
         descriptor's candidates (:mod:`solid_ros.core.candidates.position`,
-        :mod:`solid_ros.core.candidates.covisibility`; appended to ``proposal.hits``, source
+        :mod:`solid_ros.core.candidates.covisibility`; after the proposal's hits, source
         ``'graph'``), and every candidate the graph places within
         ``graph_candidate_max_radius_m`` or proposes by view or structure is registered from
         the graph's relative pose first. They pass the same tests (see
-        :mod:`solid_ros.core.flow.verify_stage`).
+        :mod:`solid_ros.core.flow.verify_stage`). ``proposal`` is not changed.
         """
         return self._stage.verify(proposal, hint, step=step)
 
@@ -317,6 +317,14 @@ class LoopDetector:
         cloud = None if seq is None else self.clouds.get(seq)
         # Peers keep the configuration's grid: a tight-space cloud goes out on it.
         return None if cloud is None else coarsened(cloud, self._state.config.verify_voxel_size)
+
+    def seq_of(self, session: int, index: int) -> int | None:
+        """Database sequence number of scan ``index`` of ``session`` (this one's, a loaded
+        map's or a peer's), or None when it is not stored."""
+        if session == self._state.config.session_id:
+            return self.database.own_seq(index)
+        seq = self._stage.map_seqs.get((session, index))
+        return seq if seq is not None else self.database.foreign_seq(session, index)
 
     def peer_cloud(self, index: int) -> KeyframeCloud | None:
         """:meth:`own_cloud` as a peer gets it: the ground thinned (:func:`for_peers`)."""

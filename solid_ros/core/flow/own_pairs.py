@@ -121,14 +121,14 @@ class OwnKeyframes:
             legs.append(got[0].T_mq)
         return closes(T_ak, legs[0], legs[1])
 
-    def step(self, verifier: Verifier, proposal: Proposal) -> tuple[Verification, int] | None:
-        """The keyframe registered to this session's previous one from the odometry step,
-        judged as a step (the loops' tests but the single-object one): the verification and
-        the previous keyframe's sequence number; None without a pose, a cloud or a verified
-        alignment."""
+    def step(self, verifier: Verifier, proposal: Proposal,
+             query: Query) -> tuple[Verification, int] | None:
+        """The keyframe (``query``: its cloud prepared) registered to this session's previous
+        one from the odometry step, judged as a step (the loops' tests but the single-object
+        one): the verification and the previous keyframe's sequence number; None without a
+        pose, a cloud or a verified alignment."""
         seq = self.seqs.get(proposal.query_index - 1)
-        query = proposal.query
-        if (query is None or proposal.pose is None or seq is None
+        if (proposal.pose is None or seq is None
                 or not self.database.is_stored(seq)):
             return None
         pose_prev = self.database.pose(seq)
@@ -143,12 +143,12 @@ class OwnKeyframes:
 
 
 def calibrate(own: OwnKeyframes, verifier: Verifier, calibration: Calibration,
-              proposal: Proposal, min_overlap: float) -> None:
-    """Register the keyframe to a partner a few metres back along the odometry and teach
-    ``calibration`` what a right alignment and the odometry's drift look like here; the
-    verifier then judges by what it learned (``min_overlap``: ``verify_min_overlap``)."""
-    query = proposal.query
-    if (query is None or not query.usable or proposal.pose is None
+              proposal: Proposal, query: Query, min_overlap: float) -> None:
+    """Register the keyframe (``query``: its cloud prepared) to a partner a few metres back
+    along the odometry and teach ``calibration`` what a right alignment and the odometry's
+    drift look like here; the verifier then judges by what it learned (``min_overlap``:
+    ``verify_min_overlap``)."""
+    if (not query.usable or proposal.pose is None
             or not calibration.wants(proposal.query_index)):
         return
     partner = own.partner(proposal.query_index, proposal.pose)

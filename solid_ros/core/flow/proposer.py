@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
@@ -132,10 +133,8 @@ class Proposer:
             cloud = self.keyframe_points(pts, tight=True, up=state.mount.upright(vec))
         t1 = time.perf_counter()
         proposal = self.propose_descriptor(desc, stamp, vec, cloud, segment)
-        proposal.descriptor, proposal.tight = desc, tight
-        proposal.describe_ms = (t1 - t0) * 1e3
-        proposal.search_ms = (time.perf_counter() - t1) * 1e3
-        return proposal
+        return replace(proposal, descriptor=desc, tight=tight, describe_ms=(t1 - t0) * 1e3,
+                       search_ms=(time.perf_counter() - t1) * 1e3)
 
     def _check_usable(self, points: npt.ArrayLike) -> None:
         """Raise CloudError unless a point survives the range gate, FOV and max_distance.
@@ -220,7 +219,7 @@ class Proposer:
         self._kf_stamp, self._kf_pose = stamp, vec
         self._kf_segment = segment if segment is not None else self._kf_segment
         return Proposal(q_index, stamp, seq, np.asarray(desc.heading, dtype=np.float64), cloud,
-                        np.asarray(desc.r_solid, dtype=np.float64), vec, chosen, best)
+                        np.asarray(desc.r_solid, dtype=np.float64), vec, tuple(chosen), best)
 
 
 def _unusable(shape: tuple[int, ...], cfg: SolidConfig) -> str:

@@ -97,13 +97,17 @@ class VerifyStage:
         # The step registered before the keyframe's candidates, by query index (with_step
         # hands it on instead of registering it again).
         self._step: tuple[int, LoopCandidate | None, float] | None = None
+        # The last keyframe's prepared cloud, by query index (its step registers from it).
+        self._query: tuple[int, Query] | None = None
 
     def reset(self) -> None:
-        """Forget the loaded map, the last loop, the pending step and the structures."""
+        """Forget the loaded map, the last loop, the pending step, the prepared cloud and
+        the structures."""
         self.map_seqs = {}
         self.map_views = ViewCentres.of({})
         self._last_loop_query = None
         self._step = None
+        self._query = None
         self._structures.clear()
 
     def verify(self, proposal: Proposal, hint: GraphHint | None = None, *,
@@ -112,36 +116,35 @@ class VerifyStage:
         t0 = time.perf_counter()
         state = self._state
         cfg = state.config
+        query = self._prepared(proposal)
         structure = None
-        if state.verifier is not None and proposal.query is None:
-            proposal.query = state.verifier.prepare(
-                proposal.cloud_points if proposal.cloud_points is not None
-                else np.zeros((0, 3)), proposal.tight)
-            if cfg.backend and cfg.graph_candidates > 0:  # only the back end's hint uses it
-                structure = self._structure_of(proposal.query)
+        if query is not None and cfg.backend and cfg.graph_candidates > 0:
+            structure = self._structure_of(query)  # only the back end's hint uses it
         more: Callable[[], list[Hit]] | None = None
         placed: Callable[[], list[Hit]] | None = None
-        if hint is not None and cfg.graph_candidates > 0 and state.verifier is not None:
+        if hint is not None and cfg.graph_candidates > 0 and query is not None:
             hint = self.registered_hint(proposal, hint)
-            proposal.hits = with_graph_hits(proposal, hint, cfg, state.database, state.own_seqs,
-                                            state.views, state.mount, self.map_seqs,
-                                            self.map_views)
+            # The graph's candidates join a copy: the caller's proposal stays as proposed.
+            proposal = replace(proposal, hits=tuple(with_graph_hits(
+                proposal, hint, cfg, state.database, state.own_seqs, state.views, state.mount,
+                self.map_seqs, self.map_views)))
             if structure is not None:
                 more = partial(shared_hits, proposal, hint, cfg, state.database,
                                state.own_seqs, state.mount, self._structures, structure)
             placed = partial(placed_peer_hits, proposal, hint, cfg, state.database, state.mount)
         gap_blocked = bool(cfg.min_loop_gap and self._last_loop_query is not None
                            and proposal.query_index - self._last_loop_query < cfg.min_loop_gap)
-        if state.verifier is None:
+        if query is None:
             attempts = self._acceptor.by_descriptor(proposal)
         else:
-            attempts = self._acceptor.by_registration(proposal, gap_blocked, more, placed)
+            attempts = self._acceptor.by_registration(proposal, query, gap_blocked, more, placed)
         if structure is not None:  # after its own search: it shares all with itself
             self._structures.add(proposal.query_index, structure)
         taken = self._taken(attempts, gap_blocked)
         if taken:
             self._last_loop_query = proposal.query_index
-        self._calibrate(proposal)
+        if query is not None:
+            self._calibrate(proposal, query)
         # The step registered before the candidates is the step stage's time, not theirs.
         early = (self._step[2] if self._step is not None
                  and self._step[0] == proposal.query_index else 0.0)
@@ -151,6 +154,27 @@ class VerifyStage:
                             tuple(taken), tuple(attempts), proposal.best, times,
                             proposal.descriptor)
         return self.with_step(result, proposal) if step else result
+
+    def _calibrate(self, proposal: Proposal, query: Query) -> None:
+        """Register the keyframe to a partner a few metres back along the odometry and teach
+        the calibration what a right alignment and the odometry's drift look like here (see
+        :mod:`solid_ros.core.verification.calibration`)."""
+        state = self._state
+        assert state.verifier is not None
+        calibrate(state.own, state.verifier, state.calibration, proposal, query,
+                  state.config.verify_min_overlap)
+
+    def _prepared(self, proposal: Proposal) -> Query | None:
+        """The keyframe's cloud prepared for registration (None without verification), kept
+        for the keyframe's registered step (:meth:`with_step`) until the next keyframe."""
+        verifier = self._state.verifier
+        if verifier is None:
+            return None
+        if self._query is None or self._query[0] != proposal.query_index:
+            points = (proposal.cloud_points if proposal.cloud_points is not None
+                      else np.zeros((0, 3)))
+            self._query = (proposal.query_index, verifier.prepare(points, proposal.tight))
+        return self._query[1]
 
     def _taken(self, attempts: list[LoopCandidate], gap_blocked: bool) -> list[LoopCandidate]:
         """The accepted ``attempts`` to publish: none while ``gap_blocked``, each a distinct
@@ -170,15 +194,6 @@ class VerifyStage:
                 continue
             taken.append(c)
         return taken
-
-    def _calibrate(self, proposal: Proposal) -> None:
-        """Register the keyframe to a partner a few metres back along the odometry and teach
-        the calibration what a right alignment and the odometry's drift look like here (see
-        :mod:`solid_ros.core.verification.calibration`)."""
-        state = self._state
-        if state.verifier is not None:
-            calibrate(state.own, state.verifier, state.calibration, proposal,
-                      state.config.verify_min_overlap)
 
     def registered_hint(self, proposal: Proposal, hint: GraphHint) -> GraphHint:
         """``hint`` predicting the query from its registered step instead of the odometry's,
@@ -225,7 +240,9 @@ class VerifyStage:
         (the loops' coarse and fine stages and tests); None without a pose, a cloud or a
         verified alignment. It corrects an odometry that ran away between two keyframes."""
         state = self._state
-        got = None if state.verifier is None else state.own.step(state.verifier, proposal)
+        query = self._prepared(proposal)
+        got = (None if state.verifier is None or query is None
+               else state.own.step(state.verifier, proposal, query))
         if got is None:
             return None
         fine, seq = got

@@ -183,7 +183,8 @@ def _peer_scene(aligned: bool) -> tuple[list[Hit], np.ndarray, float]:
     query = pose(8.0, 1.0)
     cloud = np.array([[5.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, -1.0, 1.0]])
     prop = Proposal(30, 30 * SEC, 30, np.zeros(60), cloud, pose=matrix_to_vector(query))
-    prop.hits = with_graph_hits(prop, hint, cfg, db, seqs, NO_VIEWS, Mount(cfg))
+    prop = replace(prop, hits=tuple(with_graph_hits(prop, hint, cfg, db, seqs, NO_VIEWS,
+                                                    Mount(cfg))))
     assert not [h for h in prop.hits if h.match.session == 1]  # they come apart, asked later
     return (placed_peer_hits(prop, hint, cfg, db, Mount(cfg)), T_own_peer @ peer_map[6],
             float(placed.sigma_m[6]))
@@ -242,8 +243,9 @@ def test_a_loaded_maps_descriptor_hit_is_judged_by_the_map_not_by_own_keyframes(
                         np.diag([0.04] * 3 + [1e-4] * 3), relative, placed)
     cloud = np.array([[5.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, -1.0, 1.0]])
     prop = Proposal(30, 30 * SEC, 30, np.zeros(60), cloud, pose=matrix_to_vector(pose(29.5)))
-    prop.hits = [Hit(Match(100 + k, k, 0, k * SEC, 0.1), math.nan,
-                     np.zeros(60, np.float32), 'descriptor') for k in (40, 29)]
+    prop = replace(prop, hits=tuple(Hit(Match(100 + k, k, 0, k * SEC, 0.1), math.nan,
+                                        np.zeros(60, np.float32), 'descriptor')
+                                    for k in (40, 29)))
     hits = {h.match.index: h for h in with_graph_hits(prop, hint, cfg, db, seqs, NO_VIEWS,
                                                         Mount(cfg)) if h.match.session == 0}
     assert hits[40].guess is not None and hits[40].near and not hits[40].view

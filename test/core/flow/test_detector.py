@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -369,6 +370,27 @@ def test_each_scan_returns_one_result_and_the_detector_keeps_none() -> None:
     assert not any(name.startswith('last_') for name in vars(det))  # no per-scan state
 
 
+def test_verify_leaves_the_proposal_as_proposed_and_seq_of_finds_each_session() -> None:
+    """The proposal is a frozen record: verify works on a copy. seq_of maps a loop's
+    (session, index) back to the stored scan, own or a peer's (the node draws its edges)."""
+    det = LoopDetector(_cfg())
+    for k in range(4):
+        det.process(place(k), k * SEC)
+    proposal = det.propose(rotz(place(1), 30.0), 4 * SEC)
+    assert proposal is not None and isinstance(proposal.hits, tuple)
+    hits = proposal.hits
+    result = det.verify(proposal)
+    assert proposal.hits is hits and [c.match_index for c in result.loops] == [1]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        proposal.hits = ()  # type: ignore[misc]
+    d = result.descriptor
+    assert d is not None
+    peer = det.add_peer_keyframe(7, 3, 5 * SEC, d.r_solid, d.heading)
+    assert det.seq_of(7, 3) == peer and det.seq_of(7, 4) is None
+    assert det.seq_of(0, 1) is not None and det.database.match_info(det.seq_of(0, 1))[:2] == (1, 0)
+    assert det.seq_of(0, 99) is None
+
+
 @pytest.mark.parametrize('mode', ['on', 'off', 'auto'])
 def test_a_keyframe_is_registered_to_the_previous_one_from_the_odometry_step(mode: str) -> None:
     pytest.importorskip('small_gicp', reason='small-gicp is not installed')
@@ -565,7 +587,6 @@ def test_a_registered_step_places_the_query_where_a_runaway_odometry_did_not() -
         det.process(first.points, SEC, matrix_to_vector(first.pose))
         proposal = det.propose(second.points, 2 * SEC, matrix_to_vector(ran_away))
         assert proposal is not None
-        proposal.query = det.verifier.prepare(proposal.cloud_points)  # as verify() does
         hint = GraphHint.of([0], [SEC], first.pose[None], first.pose[None], np.eye(4),
                             np.eye(6) * 1e-4)
         used = det._stage.registered_hint(proposal, hint)
