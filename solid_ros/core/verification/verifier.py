@@ -148,7 +148,7 @@ class Verification:
         return cls(False, verdict.reason, T, verdict.evidence, verdict.detail, fitness)
 
 
-@dataclass
+@dataclass(frozen=True)
 class CoarseResult:
     """A candidate after the coarse stage, before the fine stage and the tests."""
 
