@@ -2,7 +2,9 @@
 
 For each real recording in ``../shared/data`` (hku1: Livox Avia, a loop; quickshack: Avia
 hand-held in a tight space; riv281: Ouster OS1-64 on a car, keyframes 0.3-21 s and 2-60 m
-apart) it runs, on the bag's clouds:
+apart) and each of the simulator's drives (``sim-avia_like``, ``sim-mid360_like``,
+``sim-hdl64``: the sensor streaming at 10 Hz on a car at 2.5 m/s, ``--sim-clouds`` clouds
+0.25 m apart along the demo's route, its reference poses exact) it runs, on the same clouds:
 
 - ``plain``: KISS-ICP 1.3 called directly (``KissICP(config).register_frame(points, times)``
   per cloud, ``last_pose``), the way its own pipeline does;
@@ -16,7 +18,8 @@ passes each cloud's per-point times (when the bag carries them) to both with des
 intensity): KISS-ICP then deskews nothing, on or off. Prints for each:
 
 - ATE: RMSE of the positions after an SE(3) (Umeyama, no scale) alignment to
-  optimized_poses.txt (the reference; the bag's odometry is the same drift-free trajectory);
+  optimized_poses.txt (the reference; the bag's odometry is the same drift-free trajectory),
+  or to the simulator's poses;
 - tracked: steps whose relative pose is within 0.3 m (or 10 % of the step) and 2 deg of the
   reference step;
 - resets (ours) by kind, and how many fell on a step plain KISS-ICP tracked;
@@ -25,8 +28,9 @@ intensity): KISS-ICP then deskews nothing, on or off. Prints for each:
 
 Timings on a shared 2-core machine are noisy. ``--report FILE`` writes the figures with the
 date and commit (Markdown for ``doc/reports/``, else JSON); ``--save DIR`` keeps the poses.
-Usage: ``python test/bench/bench_odometry.py [--sets hku1,quickshack,riv281] [--settings
-derived|preset] [--deskew on|off] [--voxel M] [--report FILE] [--save DIR]``.
+Usage: ``python test/bench/bench_odometry.py [--sets hku1,quickshack,riv281,sim-avia_like,...]
+[--sim-clouds N] [--settings derived|preset] [--deskew on|off] [--voxel M] [--report FILE]
+[--save DIR]``.
 """
 
 from __future__ import annotations
@@ -55,12 +59,23 @@ from solid_ros.formats.poses import read_kitti_poses  # noqa: E402
 from solid_ros.tools.replay import load_config  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
-PRESETS = {'hku1': 'avia.yaml', 'quickshack': 'avia.yaml', 'riv281': 'ouster.yaml'}
+PRESETS = {'hku1': 'avia.yaml', 'quickshack': 'avia.yaml', 'riv281': 'ouster.yaml',
+           'sim-avia_like': 'avia.yaml', 'sim-mid360_like': 'mid360.yaml',
+           'sim-hdl64': 'hdl64.yaml'}
+SIM = 'sim-'
 FloatArray = npt.NDArray[np.float64]
 
 
-def load(name: str) -> tuple[list[FloatArray], list[int], FloatArray]:
-    """The recording's clouds (x, y, z), their stamps (ns) and the reference poses."""
+def load(name: str, sim_clouds: int = 0) -> tuple[list[FloatArray], list[int], FloatArray]:
+    """The recording's (or simulated drive's, ``sim_clouds`` of them) clouds (x, y, z), their
+    stamps (ns) and the reference poses."""
+    if name.startswith(SIM):
+        from solid_ros.sim.drive import Drive, DriveConfig
+
+        drive = Drive(DriveConfig(sensor=name[len(SIM):], spacing=0.25, speed=2.5))
+        scans = [drive.scan(k) for k in range(sim_clouds)]
+        return ([np.asarray(sc.points, dtype=np.float64) for sc in scans],
+                [sc.stamp_ns for sc in scans], np.stack([sc.pose for sc in scans]))
     clouds, stamps = [], []
     with Bag(DATA / name / 'bag') as bag:
         for scan in bag.clouds('/points'):
@@ -70,7 +85,10 @@ def load(name: str) -> tuple[list[FloatArray], list[int], FloatArray]:
 
 
 def point_times(name: str) -> list[FloatArray | None]:
-    """Each cloud's per-point times as the bag gives them (None: the cloud has none)."""
+    """Each cloud's per-point times as the bag gives them (None: the cloud has none; the
+    simulator's clouds have none: bench_deskew moves its sensor within a scan)."""
+    if name.startswith(SIM):
+        return []
     with Bag(DATA / name / 'bag') as bag:
         return [None if scan.times is None else np.asarray(scan.times, dtype=np.float64)
                 for scan in bag.clouds('/points')]
@@ -152,12 +170,12 @@ def realtime_fraction(stamps: list[int], costs: list[float]) -> float:
 
 
 def run(name: str, mode: str, deskew: str, save: Path | None,
-        voxel: float = 0.0) -> dict[str, Any]:
-    clouds, stamps, ref = load(name)
+        voxel: float = 0.0, sim_clouds: int = 0) -> dict[str, Any]:
+    clouds, stamps, ref = load(name, sim_clouds)
     cfg = replace(settings(name, mode, clouds), kiss_deskew=deskew == 'on')
     if voxel > 0:
         cfg = replace(cfg, kiss_voxel_size=voxel)
-    times = point_times(name) if deskew == 'on' else [None] * len(clouds)
+    times = (point_times(name) if deskew == 'on' else []) or [None] * len(clouds)
     timed = sum(t is not None for t in times)
     print(f'{name}: {len(clouds)} clouds; max range {cfg.kiss_max_range:.1f} m, min range '
           f'{cfg.kiss_min_range:.1f} m, voxel {cfg.kiss_voxel_size:.2f} m ({mode}); deskew '
@@ -198,7 +216,8 @@ def lines(name: str, s: dict[str, Any]) -> list[str]:
 COLUMNS = ['recording', 'max range / voxel', 'ATE plain', 'ATE ours', 'ours/plain',
            'tracked plain / ours', 'resets (where plain tracks)', 'ms/cloud plain / ours',
            'real time plain / ours']
-NOTES = ('ATE after SE(3) alignment to optimized_poses.txt. Tracked: steps within 0.3 m (or '
+NOTES = ('ATE after SE(3) alignment to optimized_poses.txt (sim-: to the simulator\'s poses; '
+         'the sensor streaming at 10 Hz, 0.25 m apart). Tracked: steps within 0.3 m (or '
          '10 % of the step) and 2 deg of the reference step. Real time: clouds one worker '
          'keeps up with at the bag stamps. Shared 2-core machine: timings are noisy.')
 
@@ -220,19 +239,25 @@ def main() -> int:
     p.add_argument('--deskew', choices=('on', 'off'), default='off')
     p.add_argument('--voxel', type=float, default=0.0,
                    help="KISS-ICP's voxel for both, metres, instead of --settings' (0: theirs)")
+    p.add_argument('--sim-clouds', type=int, default=300,
+                   help='clouds of each simulated drive (0.25 m apart)')
     p.add_argument('--report', type=Path)
     p.add_argument('--save', type=Path)
     args = p.parse_args()
+    names = args.sets.split(',')
+    if unknown := [n for n in names if n not in PRESETS]:
+        p.error(f'unknown sets {unknown}; known: {",".join(PRESETS)}')
     if not DATA.is_dir():
-        print(f'bench_odometry: {DATA} is missing: nothing to run')
-        return 0
+        print(f'bench_odometry: {DATA} is missing: the real recordings are skipped')
+        names = [n for n in names if n.startswith(SIM)]
     SolidConfig()  # the project imports cleanly before the long runs
     figures = {}
-    for name in args.sets.split(','):
-        figures[name] = run(name, args.settings, args.deskew, args.save, args.voxel)
+    for name in names:
+        figures[name] = run(name, args.settings, args.deskew, args.save, args.voxel,
+                            args.sim_clouds)
         print('\n'.join(lines(name, figures[name])), flush=True)
     if args.report is not None:
-        meta = bench_meta('bench_odometry', vars(args) | {'sets': args.sets.split(',')})
+        meta = bench_meta('bench_odometry', vars(args) | {'sets': names})
         write_report(args.report, meta, COLUMNS, [_row(k, v) for k, v in figures.items()],
                      {'recordings': figures}, NOTES)
     return 0

@@ -83,7 +83,7 @@ class Frame:
         structure: which of them are structure (normal away from vertical).
         constraint: smallest eigenvalue of the mean x-y normal outer product of the planar
             points (about 0 in a corridor).
-        tree: kd-tree of ``points``.
+        tree: small_gicp kd-tree of ``points`` (None without points).
     """
 
     points: FloatArray
@@ -95,15 +95,16 @@ class Frame:
 def prepare(points: FloatArray) -> Frame:
     """Normals, structure and horizontal constraint of a voxelised cloud ((M, 3) points,
     voxelised as KISS-ICP does for registration)."""
-    from scipy.spatial import cKDTree
+    import small_gicp as sg  # the neighbours in C++: half scipy's cKDTree time per cloud
 
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    tree = cKDTree(pts)
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    tree = sg.KdTree(sg.PointCloud(pts)) if len(pts) else None
     k = min(_NEIGHBOURS, len(pts))
-    _, idx = tree.query(pts, k=k)
-    nb = pts[np.asarray(idx).reshape(len(pts), k)]
+    idx = (np.asarray(tree.batch_knn_search(pts, k)[0], dtype=np.intp) if tree is not None
+           else np.zeros((0, k), dtype=np.intp))
+    nb = pts[idx.reshape(len(pts), k)]
     centred = nb - nb.mean(axis=1, keepdims=True)
-    w, v = np.linalg.eigh(np.einsum('nki,nkj->nij', centred, centred))
+    w, v = np.linalg.eigh(np.matmul(centred.transpose(0, 2, 1), centred))
     normals = v[:, :, 0]
     planar = normals[w[:, 1] > _PLANAR * np.maximum(w[:, 0], 1e-12)]
     # Horizontal only: without ground (a tilted or high sensor) z rests on KISS-ICP's
@@ -141,10 +142,11 @@ class OverlapGuard:
         """Fraction of ``cloud``'s structure within ``reach`` of ``previous`` once mapped by
         ``step`` (``p_prev = step p``); 1.0 when it has too little structure to tell."""
         struct = cloud.points[cloud.structure]
-        if len(struct) < _MIN_STRUCTURE or len(previous.points) == 0:
+        if len(struct) < _MIN_STRUCTURE or previous.tree is None:
             return 1.0
-        dist, _ = previous.tree.query(struct @ step[:3, :3].T + step[:3, 3])
-        return float(np.mean(np.asarray(dist) < self.reach))
+        moved = np.ascontiguousarray(struct @ step[:3, :3].T + step[:3, 3])
+        _, sq = previous.tree.batch_nearest_neighbor_search(moved)
+        return float(np.mean(np.asarray(sq) < self.reach ** 2))
 
     def fails(self, overlap: float) -> bool:
         """Whether ``overlap`` is below the run's bar."""
