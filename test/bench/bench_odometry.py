@@ -216,7 +216,7 @@ def lines(name: str, s: dict[str, Any]) -> list[str]:
 COLUMNS = ['recording', 'max range / voxel', 'ATE plain', 'ATE ours', 'ours/plain',
            'tracked plain / ours', 'resets (where plain tracks)', 'ms/cloud plain / ours',
            'real time plain / ours']
-NOTES = ('ATE after SE(3) alignment to optimized_poses.txt (sim-: to the simulator\'s poses; '
+NOTES = ("ATE after SE(3) alignment to optimized_poses.txt (sim-: to the simulator's poses; "
          'the sensor streaming at 10 Hz, 0.25 m apart). Tracked: steps within 0.3 m (or '
          '10 % of the step) and 2 deg of the reference step. Real time: clouds one worker '
          'keeps up with at the bag stamps. Shared 2-core machine: timings are noisy.')
