@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from project_paths import ROOT
 
 
@@ -80,3 +81,14 @@ def test_refused_evidence_finds_the_bar_that_separates_right_from_wrong(tmp_path
     assert 'lets 2 of 3' in out  # 0.05 and 0.06 lie below the nearest wrong pose's 0.1
     assert 'FALSE q9 m1 5.00 m / 1.0 deg' in out and 'conflict 0.02' in out
 
+
+
+def test_bench_odometry_runs_a_simulated_drive() -> None:
+    # Own odometry beside plain KISS-ICP on the simulator's clouds (issue 35's bench).
+    pytest.importorskip('kiss_icp', reason='kiss-icp is not installed')
+    out = _bench('bench_odometry.py', '--sets', 'sim-avia_like', '--sim-clouds', '20')
+    assert 'sim-avia_like: 20 clouds' in out
+    plain, ours = (next(ln for ln in out.splitlines() if ln.strip().startswith(who))
+                   for who in ('plain ATE', 'ours  ATE'))
+    assert 'ms/cloud' in plain and 'ms/cloud' in ours
+    assert 'ours/plain ATE 1.00; resets 0' in out  # the adapter adds no error there
