@@ -307,8 +307,8 @@ def bench_kitti(probe: Probe, args: argparse.Namespace, clouds: list[np.ndarray]
         probe.publish(clouds[:3], 2.0)  # warm-up
         print(f'KITTI scan 313 turning, {len(clouds[0])} points per cloud, KISS-ICP voxel '
               f'{kiss[0]:g} m, max range {kiss[1]:g} m:')
-        _line(f'10 Hz for {args.duration:.0f} s', probe.publish(clouds, 10.0, args.duration),
-              probe)
+        full = probe.publish(clouds, 10.0, args.duration)
+        _line(f'10 Hz for {args.duration:.0f} s', full, probe)
         best = 0.0
         for rate in [float(r) for r in args.rates.split(',') if r]:
             run = probe.publish(clouds, rate, args.step_duration)
@@ -316,6 +316,8 @@ def bench_kitti(probe: Probe, args: argparse.Namespace, clouds: list[np.ndarray]
             if run[1] < run[0]:
                 break
             best = rate
+        if full[1] >= full[0]:  # the sensor's own rate kept them all: the ladder below it did too
+            best = max(best, 10.0)
         print(f'  highest rate tried with every 120k-point cloud kept: {best:g} Hz')
     finally:
         stop_node(proc)
