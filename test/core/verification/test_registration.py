@@ -68,3 +68,21 @@ def test_without_ground_in_view_the_coarse_stage_keeps_the_starts_height() -> No
     al = align_coarse(query, source, [], settings, [np.linalg.inv(start)])
     assert al is not None
     assert al.T_qm[2, 3] == pytest.approx(0.1)
+
+
+def test_a_restart_ends_at_coarser_steps_within_a_centimetre_of_the_fine_stage() -> None:
+    # The restarts only ask whether a pose returns within verify_max_drift (0.2 m): their
+    # coarser convergence steps must leave them where the fine stage's own would, and not
+    # cost fewer iterations.
+    settings = RegistrationSettings()
+    query = Query(_street(0.2), settings)
+    source = Source(Query(_street(0.2), settings).keyframe_cloud(), settings)
+    start = np.eye(4)
+    start[:3, :3] = rpy_matrix(0.0, 0.0, math.radians(2.0))
+    start[:3, 3] = [0.8, 0.4, 0.0]
+    fine = align_fine(query, source, start, settings)
+    again = align_fine(query, source, start, settings, restart=True)
+    assert fine.converged and again.converged
+    assert again.iterations < fine.iterations
+    assert np.linalg.norm(again.T_qm[:3, 3] - fine.T_qm[:3, 3]) < 0.01
+    assert np.linalg.norm(fine.T_qm[:3, 3]) < 0.05  # both found the right pose
