@@ -23,7 +23,7 @@ run's odometry before its loop closure: over a 64 m walk it drifts little, and i
 deformed by that loop closure, which moved the reference by 20-35 cm at the revisit), and the
 simulator's demo drives (50 m blocks, a scan every 2 m, seed 0 unless ``--seed``, the
 ``revisits`` route; exact reference): ``hdl64`` (``hdl64.yaml``), ``avia_like``
-(``avia.yaml``), ``ouster_like``, ``vlp16_like`` (``hdl64.yaml`` at their own vertical FOV),
+(``avia.yaml``), ``ouster_like`` (``ouster.yaml``), ``vlp16_like`` (``vlp16.yaml``),
 ``hdl64_lookalike``, ``avia_lookalike``, and ``indoor`` (the handheld Avia-like walk
 through the simulator's cluttered room, as in ``bench_generalisation.py``).
 
@@ -70,8 +70,8 @@ CHI2_6_95 = 12.59
 SIM_SETS: dict[str, Case] = {
     'hdl64': Case('hdl64', 'hdl64', 'revisits', 'varied', 'hdl64.yaml'),
     'avia_like': Case('avia_like', 'avia_like', 'revisits', 'varied', 'avia.yaml'),
-    'ouster_like': Case('ouster_like', 'ouster_like', 'revisits', 'varied', 'hdl64.yaml'),
-    'vlp16_like': Case('vlp16_like', 'vlp16_like', 'revisits', 'varied', 'hdl64.yaml'),
+    'ouster_like': Case('ouster_like', 'ouster_like', 'revisits', 'varied', 'ouster.yaml'),
+    'vlp16_like': Case('vlp16_like', 'vlp16_like', 'revisits', 'varied', 'vlp16.yaml'),
     'hdl64_lookalike': Case('hdl64_lookalike', 'hdl64', 'revisits', 'lookalike', 'hdl64.yaml'),
     'avia_lookalike': Case('avia_lookalike', 'avia_like', 'revisits', 'lookalike',
                            'avia.yaml'),
