@@ -124,11 +124,12 @@ class CloudSample:
             xyz = arr[:, :3].astype(np.float32, copy=False)
         except (TypeError, ValueError):
             return False
-        finite = np.isfinite(xyz).all(axis=1) & (np.abs(xyz).sum(axis=1) > 0.0)
-        count = int(np.count_nonzero(finite))
+        # Arithmetic only on finite rows: a damaged message's signalling NaNs would warn.
+        kept = xyz[np.isfinite(xyz).all(axis=1)]
+        kept = kept[(kept != 0.0).any(axis=1)]
+        count = len(kept)
         if count == 0:
             return False
-        kept = xyz[finite]
         step = -(-count // self._max_points)
         self._parts.append(np.array(kept[::step], dtype=np.float32))
         self.counts.append(count)
