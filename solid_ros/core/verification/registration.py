@@ -36,14 +36,12 @@ _COARSE_TRANSLATION_EPS = 0.01
 # A fine run not converged after _FIRST_ITERATIONS is resumed this long; a pose that moves less
 # than this (fine voxels, degrees) meanwhile is stationary: converged (see align_fine).
 _FIRST_ITERATIONS = 15
-_TRANSLATION_EPS = 1e-3  # small_gicp's default
 _RESUME_ITERATIONS = 5
 _STATIONARY_VOXELS = 0.1
 _STATIONARY_DEG = 0.5
-# A restart only asks whether the pose returns within verify_max_drift (0.2 m) or finds a
-# minimum beyond it: 5 mm steps end it (small_gicp's 1 mm took 40 % more iterations on hku1,
-# and no verdict on hku1, quickshack or riv281 changed).
-_RESTART_TRANSLATION_EPS = 0.005
+# Fine runs end at 5 mm steps, not small_gicp's 1 mm: a loop's covariance is centimetres, the
+# restarts ask for 0.2 m (verify_max_drift), and the 1 mm took 40 % more iterations on hku1.
+_TRANSLATION_EPS = 0.005
 
 
 @dataclass(frozen=True)
@@ -162,9 +160,8 @@ def _settle_height(query: Query, source: Source, T_qm: FloatArray,
 
 
 def align_fine(query: Query, source: Source, T_qm: FloatArray,
-               settings: RegistrationSettings, restart: bool = False) -> Alignment:
-    """Refine ``T_qm`` with voxelised GICP against the query's voxel map (all points)
-    (``restart``: a restart of :mod:`.restarts`, converged at coarser steps).
+               settings: RegistrationSettings) -> Alignment:
+    """Refine ``T_qm`` with voxelised GICP against the query's voxel map (all points).
 
     A run that ends without small_gicp's convergence flag after ``_FIRST_ITERATIONS`` is
     continued for ``_RESUME_ITERATIONS``; when that moves the pose by less than
@@ -178,12 +175,11 @@ def align_fine(query: Query, source: Source, T_qm: FloatArray,
     """
     sg = load_small_gicp()
     fine, _ = source.fine()
-    eps = _RESTART_TRANSLATION_EPS if restart else _TRANSLATION_EPS
 
     def run(T: FloatArray, iterations: int) -> tuple[FloatArray, bool, int]:
         res = sg.align(query.vmap, fine, T, max_iterations=iterations,
                        max_correspondence_distance=settings.neighbour_distance,
-                       translation_epsilon=eps)
+                       translation_epsilon=_TRANSLATION_EPS)
         return (np.asarray(res.T_target_source, dtype=np.float64), bool(res.converged),
                 int(res.iterations))
 

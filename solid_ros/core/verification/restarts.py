@@ -64,7 +64,7 @@ def drift(query: Query, src: Source, T_qm: FloatArray,
         shake = np.eye(4)
         shake[:3, :3] = rot_z(sign * turn)
         shake[:2, 3] = sign * shift * weak
-        again = align_fine(query, src, shake @ T_qm, query.settings, restart=True)
+        again = align_fine(query, src, shake @ T_qm, query.settings)
         diff = np.linalg.inv(T_qm) @ again.T_qm
         worst_m = max(worst_m, float(np.linalg.norm(diff[:3, 3])))
         worst_deg = max(worst_deg, angle_deg(diff))
@@ -92,7 +92,7 @@ def second_minimum(query: Query, src: Source, T_qm: FloatArray, sup: Support, vo
     for sign in (1.0, -1.0):
         shift = np.eye(4)
         shift[:2, 3] = sign * _FAR_VOXELS * voxel * weak
-        again = align_fine(query, src, shift @ T_qm, query.settings, restart=True)
+        again = align_fine(query, src, shift @ T_qm, query.settings)
         diff = np.linalg.inv(T_qm) @ again.T_qm
         if not (again.converged and float(np.linalg.norm(diff[:3, 3])) > max_drift):
             continue

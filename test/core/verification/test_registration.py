@@ -70,19 +70,20 @@ def test_without_ground_in_view_the_coarse_stage_keeps_the_starts_height() -> No
     assert al.T_qm[2, 3] == pytest.approx(0.1)
 
 
-def test_a_restart_ends_at_coarser_steps_within_a_centimetre_of_the_fine_stage() -> None:
-    # The restarts only ask whether a pose returns within verify_max_drift (0.2 m): their
-    # coarser convergence steps must leave them where the fine stage's own would, and not
-    # cost fewer iterations.
+
+@pytest.mark.parametrize(('dx', 'dy', 'yaw_deg'), [(0.8, 0.4, 2.0), (0.0, 0.7, 3.0)])
+def test_the_fine_stage_lands_within_a_centimetre_at_its_coarser_steps(
+        dx: float, dy: float, yaw_deg: float) -> None:
+    # Fine runs end at 5 mm steps (small_gicp's default is 1 mm): the pose they end at must
+    # still be a centimetre from the right one, well inside a loop's covariance, when started
+    # as far off as the far restarts start (two voxels) with a turn.
     settings = RegistrationSettings()
     query = Query(_street(0.2), settings)
     source = Source(Query(_street(0.2), settings).keyframe_cloud(), settings)
     start = np.eye(4)
-    start[:3, :3] = rpy_matrix(0.0, 0.0, math.radians(2.0))
-    start[:3, 3] = [0.8, 0.4, 0.0]
+    start[:3, :3] = rpy_matrix(0.0, 0.0, math.radians(yaw_deg))
+    start[:3, 3] = [dx, dy, 0.0]
     fine = align_fine(query, source, start, settings)
-    again = align_fine(query, source, start, settings, restart=True)
-    assert fine.converged and again.converged
-    assert again.iterations < fine.iterations
-    assert np.linalg.norm(again.T_qm[:3, 3] - fine.T_qm[:3, 3]) < 0.01
-    assert np.linalg.norm(fine.T_qm[:3, 3]) < 0.05  # both found the right pose
+    assert fine.converged
+    assert np.linalg.norm(fine.T_qm[:3, 3]) < 0.01
+    assert math.degrees(math.acos(min(1.0, (np.trace(fine.T_qm[:3, :3]) - 1.0) / 2.0))) < 0.1

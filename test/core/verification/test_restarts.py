@@ -26,7 +26,7 @@ def test_a_second_minimum_where_the_candidates_own_overlap_falls_is_kept_out(
             self.overlap, self.rmse, self.conflict = min(match, query), 0.1, 0.0
             self.information = np.diag([1.0, 1.0, 1.0, 1.0, 0.1, 1.0])
 
-    def fine(query: Any, src: Any, T_qm: np.ndarray, settings: Any, restart: bool = False) -> Any:
+    def fine(query: Any, src: Any, T_qm: np.ndarray, settings: Any) -> Any:
         return Alignment(np.asarray(T_qm), True, 5)
 
     cfg = SolidConfig.from_yaml(CONFIG_DIR / 'avia.yaml')

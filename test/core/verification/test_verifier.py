@@ -505,7 +505,9 @@ def _verify_room_pair(q: int, m: int, guesses: tuple[FloatArray, ...] = (),
 
 
 @pytest.mark.parametrize(('axis', 'sigma', 'kept'), [
-    (3, math.radians(1.4), True), (3, math.radians(1.6), False),   # roll: 2 sigmas vs 3 deg
+    # roll: 2 sigmas vs 3 deg (its coupling to pitch and yaw adds about 0.2 deg: 1.4 deg
+    # sat at 2.97 deg, on the bar within how far the fine stage stops from the optimum)
+    (3, math.radians(1.3), True), (3, math.radians(1.6), False),
     (2, 0.45, True), (2, 0.55, False)])                            # height: 2 sigmas vs 1 m
 def test_a_loop_its_own_covariance_does_not_pin_is_refused(
         monkeypatch: pytest.MonkeyPatch, axis: int, sigma: float, kept: bool) -> None:
