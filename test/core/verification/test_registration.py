@@ -70,7 +70,6 @@ def test_without_ground_in_view_the_coarse_stage_keeps_the_starts_height() -> No
     assert al.T_qm[2, 3] == pytest.approx(0.1)
 
 
-
 @pytest.mark.parametrize(('dx', 'dy', 'yaw_deg'), [(0.8, 0.4, 2.0), (0.0, 0.7, 3.0)])
 def test_the_fine_stage_lands_within_a_centimetre_at_its_coarser_steps(
         dx: float, dy: float, yaw_deg: float) -> None:
