@@ -62,7 +62,9 @@ def load_kiss_icp() -> tuple[Any, Any, Any]:
     """Import KISS-ICP on first use: ``KissICP``, ``KISSConfig``, ``voxel_down_sample``.
 
     Raises:
-        SolidError: kiss-icp is not installed (the message says how to install it).
+        SolidError: kiss-icp, or small_gicp (the overlap check's neighbours,
+            :mod:`solid_ros.core.odometry.guard`), is not installed (the message says how to
+            install it).
     """
     try:
         from kiss_icp.config import KISSConfig  # type: ignore[import-untyped]
@@ -71,6 +73,11 @@ def load_kiss_icp() -> tuple[Any, Any, Any]:
     except ImportError as err:
         raise SolidError("odometry_source 'kiss_icp' needs KISS-ICP: pip install kiss-icp "
                          "(or pip install 'solid_ros[kiss]')") from err
+    try:
+        import small_gicp  # noqa: F401
+    except ImportError as err:  # at start, not as a reset on every cloud
+        raise SolidError("odometry_source 'kiss_icp' needs small_gicp for its overlap "
+                         'check: pip install small-gicp') from err
     return KissICP, KISSConfig, voxel_down_sample
 
 

@@ -206,6 +206,14 @@ def test_missing_kiss_icp_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch
         KissOdometry()
 
 
+def test_missing_small_gicp_is_said_at_start_not_as_resets(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # The overlap check takes its neighbours from small_gicp's kd-tree.
+    monkeypatch.setitem(sys.modules, 'small_gicp', None)  # import fails
+    with pytest.raises(SolidError, match='pip install small-gicp'):
+        KissOdometry()
+
+
 def test_kiss_icp_is_imported_only_when_chosen() -> None:
     code = ('import sys, solid_ros.core.odometry.kiss, solid_ros.core.config; '
             'print(any(m.startswith("kiss_icp") for m in sys.modules))')
