@@ -92,3 +92,17 @@ def test_bench_odometry_runs_a_simulated_drive() -> None:
                    for who in ('plain ATE', 'ours  ATE'))
     assert 'ms/cloud' in plain and 'ms/cloud' in ours
     assert 'ours/plain ATE 1.00; resets 0' in out  # the adapter adds no error there
+
+
+def test_bench_kiss_slam_says_how_to_install_kiss_slam(shared_data: Path) -> None:
+    # KISS-SLAM (it pulls open3d) is no dependency: without it the bench stops at once and
+    # says what to install, after importing everything it measures of solid_ros.
+    try:
+        import kiss_slam  # type: ignore[import-not-found]  # noqa: F401
+        pytest.skip('KISS-SLAM is installed: the bench would run in full (minutes)')
+    except ImportError:
+        pass
+    done = subprocess.run([sys.executable, str(ROOT / 'test' / 'bench' / 'bench_kiss_slam.py')],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert 'pip install kiss-slam==0.0.2' in done.stdout
