@@ -82,9 +82,11 @@ def align(kiss: Any, source: Any, map_points: Any, guess: FloatArray) -> Aligned
     return Aligned(np.array(pose, dtype=np.float64), guess, map_points)
 
 
-def commit(kiss: Any, step: Aligned) -> None:
-    """Keep an aligned cloud: KISS-ICP's threshold, map, motion and pose updates."""
+def commit(kiss: Any, step: Aligned, motion: bool = True) -> None:
+    """Keep an aligned cloud: KISS-ICP's threshold, map, motion and pose updates (``motion``
+    False: its motion stays what it was, for a step aligned from a standstill guess)."""
     kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(step.guess) @ step.pose)
     kiss.local_map.update(step.map_points, step.pose)
-    kiss.last_delta = np.linalg.inv(kiss.last_pose) @ step.pose
+    if motion:
+        kiss.last_delta = np.linalg.inv(kiss.last_pose) @ step.pose
     kiss.last_pose = step.pose

@@ -153,6 +153,37 @@ def test_a_gap_in_the_clouds_is_registered_from_the_time_scaled_guess() -> None:
 
 
 @needs_kiss
+def test_a_cloud_kept_from_the_standstill_guess_leaves_kiss_icps_motion(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # Along a road a standstill alignment passes the checks while the car drives on (riv281
+    # from cloud 110): it gives the cloud's pose, but a motion taken from it would hold the
+    # odometry still. Here only the standstill guess is let through for cloud 4.
+    odo = KissOdometry()
+    for i in range(4):
+        assert odo.pose_for(_drive().stamp_ns(i), _cloud(i)).reason is None  # type: ignore
+    motion = np.array(odo._kiss.last_delta)
+    assert np.linalg.norm(motion[:3, 3]) > 0.9  # the drive's 1 m steps
+    check = KissOdometry._check
+
+    def standstill_only(self: KissOdometry, kiss: Any, step: Any, frame: Any) -> Any:
+        if not np.array_equal(step.guess, np.asarray(kiss.last_pose)):
+            return ('overlap', 'refused for the test'), None
+        return check(self, kiss, step, frame)
+
+    monkeypatch.setattr(KissOdometry, '_check', standstill_only)
+    kept = odo.pose_for(_drive().stamp_ns(4), _cloud(4))
+    assert kept is not None and kept.reason is None and odo.recovered == {'standstill': 1}
+    np.testing.assert_array_equal(odo._kiss.last_delta, motion)
+    np.testing.assert_array_equal(odo._kiss.last_pose, np.linalg.inv(odo._origin) @ kept.pose)
+    # The next cloud is aligned from KISS-ICP's own guess again, one step on.
+    monkeypatch.setattr(KissOdometry, '_check', check)
+    nxt = odo.pose_for(_drive().stamp_ns(5), _cloud(5))
+    assert nxt is not None and nxt.reason is None and odo.recovered == {'standstill': 1}
+    truth = np.linalg.inv(_drive().pose(0)) @ _drive().pose(5)
+    assert np.linalg.norm(nxt.pose[:3, 3] - truth[:3, 3]) < 0.1
+
+
+@needs_kiss
 def test_a_stamp_that_jumps_back_starts_a_new_segment() -> None:
     odo = KissOdometry()
     for i in range(4):
