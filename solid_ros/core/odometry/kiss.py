@@ -28,10 +28,12 @@ cannot be registered when:
 A cloud that jumps or does not overlap when aligned from KISS-ICP's own guess is aligned again
 from a time-scaled and a standstill guess (:mod:`solid_ros.core.odometry.kiss_step`); only when
 none passes does the source reset, and a failed alignment never enters KISS-ICP's map. A cloud
-kept from the standstill guess gives a pose but leaves KISS-ICP's motion as it was: along a
-road, whose structure repeats along the motion, the standstill alignment passes the checks
-while the car drives on, and a motion taken from it held the odometry still for 80 clouds
-(riv281 from cloud 110: none of their steps tracked, plain KISS-ICP 50).
+kept from the standstill guess after a gap in time (the time-scaled guess was tried) gives a
+pose but leaves KISS-ICP's motion as it was: along a road, whose structure repeats along the
+motion, the standstill alignment passes the checks while the car drives on, and a motion taken
+from it held the odometry still for 80 clouds (riv281 from cloud 110, 2.6 s after the last:
+none of their steps tracked, plain KISS-ICP 50). At the usual spacing the standstill motion
+stays: a hand-held sensor that stops turning (quickshack) is still.
 A degenerate or non-overlapping cloud is itself a good cloud: it becomes the first cloud of the
 new segment. Clouds with too few points are dropped and the next one starts the segment.
 Clouds that lose some points (NaN rows) are counted in :attr:`KissOdometry.input_counts`.
@@ -229,13 +231,16 @@ class KissOdometry:
         first: tuple[str, str] | None = None
         try:
             source, map_points = prepared(kiss, frame, times)
-            for label, guess in guesses(kiss, None if fresh else self._ratio()):
+            tried = guesses(kiss, None if fresh else self._ratio())
+            # After a gap in time no guess bridged, a standstill pose is no motion.
+            gap = any(label == 'time-scaled' for label, _ in tried)
+            for label, guess in tried:
                 step = align(kiss, source, map_points, guess)
                 if step.pose.shape != (4, 4) or not np.all(np.isfinite(step.pose)):
                     return 'failed', 'KISS-ICP returned a non-finite pose'
                 why, overlap = (None, None) if fresh else self._check(kiss, step, check)
                 if why is None:
-                    commit(kiss, step, label != 'standstill')
+                    commit(kiss, step, not (gap and label == 'standstill'))
                     kept = label
                     break
                 first = first or why
