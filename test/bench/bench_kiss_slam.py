@@ -85,17 +85,20 @@ def kiss_slam(clouds: list[FloatArray], cfg: NodeConfig, split_m: float
 
 @contextmanager
 def _quiet() -> Iterator[None]:
-    """Standard output of C++ code (file descriptor 1) to /dev/null."""
+    """Standard output and error of C++ code (file descriptors 1 and 2) to /dev/null."""
     sys.stdout.flush()
-    saved = os.dup(1)
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
     try:
         with open(os.devnull, 'w') as null:
             os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
         yield
     finally:
         ctypes.CDLL(None).fflush(None)  # C stdio buffers what it printed: empty it there
-        os.dup2(saved, 1)
-        os.close(saved)
+        for fd, copy in zip((1, 2), saved):
+            os.dup2(copy, fd)
+            os.close(copy)
 
 
 def ours(name: str) -> tuple[dict[int, FloatArray], int, float, float]:
