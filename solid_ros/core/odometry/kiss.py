@@ -32,8 +32,8 @@ kept from the standstill guess after a gap in time (the time-scaled guess was tr
 pose but leaves KISS-ICP's motion as it was: along a road, whose structure repeats along the
 motion, the standstill alignment passes the checks while the car drives on, and a motion taken
 from it held the odometry still for 80 clouds (riv281 from cloud 110, 2.6 s after the last:
-none of their steps tracked, plain KISS-ICP 50). At the usual spacing the standstill motion
-stays: a hand-held sensor that stops turning (quickshack) is still.
+none of their steps tracked, plain KISS-ICP 50). At the usual spacing a standstill is taken
+for one, motion included: a hand-held sensor stops turning (quickshack).
 A degenerate or non-overlapping cloud is itself a good cloud: it becomes the first cloud of the
 new segment. Clouds with too few points are dropped and the next one starts the segment.
 Clouds that lose some points (NaN rows) are counted in :attr:`KissOdometry.input_counts`.

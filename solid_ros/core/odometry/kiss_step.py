@@ -84,7 +84,7 @@ def align(kiss: Any, source: Any, map_points: Any, guess: FloatArray) -> Aligned
 
 def commit(kiss: Any, step: Aligned, motion: bool = True) -> None:
     """Keep an aligned cloud: KISS-ICP's threshold, map, motion and pose updates (``motion``
-    False: its motion stays what it was, for a step aligned from a standstill guess)."""
+    False: its motion stays what it was, for a standstill guess kept after a gap in time)."""
     kiss.adaptive_threshold.update_model_deviation(np.linalg.inv(step.guess) @ step.pose)
     kiss.local_map.update(step.map_points, step.pose)
     if motion:
