@@ -51,8 +51,9 @@ from bench_real import PRESETS  # noqa: E402
 from report import bench_meta, write_report  # noqa: E402
 
 from solid_ros.core.config import NodeConfig  # noqa: E402
+from solid_ros.core.geometry import vector_to_matrix  # noqa: E402
 from solid_ros.tools.replay import load_config, replay  # noqa: E402
-from solid_ros.tools.trajectory_metrics import ate_rmse  # noqa: E402
+from solid_ros.tools.trajectory_metrics import ate_rmse, path_length  # noqa: E402
 
 DATA = ROOT.parent / 'shared' / 'data'
 FloatArray = npt.NDArray[np.float64]
@@ -111,8 +112,6 @@ def ours(name: str) -> tuple[dict[int, FloatArray], int, float, float]:
                poses=rec / 'optimized_poses.txt', times=rec / 'times.txt', progress='quiet',
                out_dir=None, plots=False)
     wall = time.perf_counter() - t0
-    from solid_ros.core.geometry import vector_to_matrix
-
     corrected = {int(k['stamp_ns']): vector_to_matrix(k['pose'])
                  for k in r.report['keyframes'] if k['pose'] is not None}
     return (corrected, int(r.report['loops']['published']),
@@ -128,7 +127,7 @@ def run(name: str, splits: list[float]) -> dict[str, Any]:
     kf = np.array(sorted(at[s] for s in corrected if s in at), dtype=np.intp)
     mine = np.stack([corrected[stamps[i]] for i in kf])
     out: dict[str, Any] = {
-        'clouds': len(clouds), 'keyframes': len(kf), 'path_m': _path(ref),
+        'clouds': len(clouds), 'keyframes': len(kf), 'path_m': float(path_length(ref)[-1]),
         'solid_ros': {'ate_keyframes_m': ate_rmse(mine, ref[kf]), 'loops': loops,
                       'replay_ate_m': replay_ate, 'wall_s': wall}}
     t0 = time.perf_counter()
@@ -141,10 +140,6 @@ def run(name: str, splits: list[float]) -> dict[str, Any]:
             'ate_keyframes_m': ate_rmse(poses[kf], ref[kf]), 'ate_all_m': ate_rmse(poses, ref),
             'closures': closures, 'wall_s': secs, 'split_m': split}
     return out
-
-
-def _path(ref: FloatArray) -> float:
-    return float(np.sum(np.linalg.norm(np.diff(ref[:, :3, 3], axis=0), axis=1)))
 
 
 def lines(name: str, s: dict[str, Any], splits: list[float]) -> list[str]:
