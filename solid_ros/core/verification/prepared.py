@@ -304,19 +304,29 @@ class RangeImage:
     """
 
     def __init__(self, points: FloatArray) -> None:
-        self._nearest = np.full(N_BINS, np.inf)  # nearest range per bin, inf: none
+        # Nearest range per bin (inf: none) with a border, so a read gathers its 9 cells
+        # without wrapping or clipping: azimuth wraps around (the border columns repeat the
+        # opposite edge); beyond the first and last elevation row there is none (inf).
+        flat = np.full((_N_AZ + 2) * _PADDED_EL, np.inf)
         if len(points):
             b, r = direction_bins(points)
-            np.minimum.at(self._nearest, b, r)
+            np.minimum.at(flat, _padded(b), r)
+        grid = flat.reshape(_N_AZ + 2, _PADDED_EL)
+        grid[0], grid[-1] = grid[_N_AZ], grid[1]
+        self._grid = flat
 
     def __getitem__(self, bins: npt.NDArray[np.intp]) -> FloatArray:
-        """The least nearest range of each bin and its 8 neighbours: azimuth wraps around;
-        beyond the first and last elevation row there is none (the row itself stands in for
-        it, which changes no minimum)."""
-        ia, ie = np.divmod(np.asarray(bins, dtype=np.intp), _N_EL)
-        out: FloatArray = np.full(len(ia), np.inf)
-        for da in (-1, 0, 1):
-            row = (ia + da) % _N_AZ * _N_EL
-            for de in (-1, 0, 1):
-                np.minimum(out, self._nearest[row + np.clip(ie + de, 0, _N_EL - 1)], out=out)
+        """The least nearest range of each bin and its 8 neighbours."""
+        cells = self._grid[_padded(np.asarray(bins, dtype=np.intp))[:, None] + _NEIGHBOURHOOD]
+        out: FloatArray = cells.min(axis=1, initial=np.inf)
         return out
+
+
+_PADDED_EL = _N_EL + 2
+# Flat offsets of a cell's 3 x 3 neighbourhood in the bordered grid.
+_NEIGHBOURHOOD = (np.arange(-1, 2)[:, None] * _PADDED_EL + np.arange(-1, 2)[None, :]).ravel()
+
+
+def _padded(bins: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    """Flat bins (see :func:`direction_bins`) as flat cells of the bordered grid."""
+    return bins + 2 * (bins // _N_EL) + _PADDED_EL + 1
