@@ -42,11 +42,16 @@ def test_bench_real_scores_a_real_recording(shared_data: Path, tmp_path: Path) -
     out = _bench('bench_real.py', '--sets', 'quickshack', '--odometry', 'bag',
                  '--report', str(tmp_path / 'real.json'))
     assert 'quickshack (avia.yaml, odometry bag)' in out
-    for label in ('loops', 'revisit recall', 'right refused', 'calibration', 'cost'):
+    for label in ('loops', 'revisit recall', 'right refused', 'wrong stopped', 'calibration',
+                  'cost'):
         assert f'  {label}' in out, label
     report = json.loads((tmp_path / 'real.json').read_text())
     assert report['bench'] == 'bench_real' and report['commit']
-    assert report['recordings']['quickshack']['published'] > 0
+    rec = report['recordings']['quickshack']
+    assert rec['published'] > 0
+    # Every wrong pose is either published (a false loop) or stopped by a named test.
+    assert rec['wrong_poses'] > 0 and 'verified' not in rec['wrong_stopped']
+    assert sum(rec['wrong_stopped'].values()) + rec['false'] == rec['wrong_poses']
 
 
 def test_bench_verify_writes_a_markdown_report(shared_data: Path, tmp_path: Path) -> None:

@@ -13,7 +13,10 @@ every candidate against the reference poses and prints:
   right loop (:func:`solid_ros.tools.loops.revisits`);
 - ``right refused``: candidates whose (rejected) pose lies within 1 m / 3 deg of the
   reference, by the reason that refused them, and how many right poses there were: a test
-  that refuses many right poses is too strict for this sensor and scene. Only measured poses
+  that refuses many right poses is too strict for this sensor and scene; ``wrong stopped``:
+  the other candidates, by the reason that refused them: what each test earns here (the
+  first test that fails is named, so a later one is credited only with what passed the
+  earlier ones). Only measured poses
   count (:attr:`~solid_ros.tools.loops.LoopRecord.measured`): a pair whose views share no
   structure (a narrow sensor standing in the same spot, looking 100-135 degrees away, on
   quickshack) keeps the graph's guess as its pose, which with the bag's odometry is the
@@ -71,6 +74,8 @@ def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any],
     right = [x for x in r.scores.records if x.correct(MAX_M, MAX_DEG) and x.measured]
     unseen = sum(1 for x in r.scores.records if not x.measured)
     refused = Counter(x.reason for x in right if not x.published)
+    wrong = [x for x in r.scores.records if x.measured and not x.correct(MAX_M, MAX_DEG)]
+    stopped = Counter(x.reason for x in wrong if not x.published)
     verify = np.array([res.times.verify for res in r.log.results if res.keyframe])
     verify = verify[np.isfinite(verify)]
     return {
@@ -79,7 +84,8 @@ def run(name: str, odometry: str, out: Path | None, sets: dict[str, Any],
         'published': loops['published'], 'false': loops['false'],
         'precision': loops.get('precision'), 'revisits': loops['revisits'],
         'right_poses': len(right), 'right_refused': dict(refused.most_common()),
-        'no_common_view': unseen,
+        'no_common_view': unseen, 'wrong_poses': len(wrong),
+        'wrong_stopped': dict(stopped.most_common()),
         'ate_odometry_m': traj['odometry']['ate_m'],
         'ate_corrected_m': traj['corrected']['ate_m'],
         'verify_p50_ms': float(np.median(verify)) if len(verify) else math.nan,
@@ -95,7 +101,7 @@ def lines(name: str, s: dict[str, Any]) -> list[str]:
     rv = s['revisits']
     recall = (f'{rv["found"]}/{rv["revisiting"]} = {rv["recall"]:.3f}' if rv['revisiting']
               else 'none (no revisit)')
-    refused = ', '.join(f'{k} {v}' for k, v in s['right_refused'].items()) or 'none'
+    refused = _by_reason(s['right_refused'])
     prec = s['precision']
     return [
         f'{name} ({s["preset"]}, odometry {s["odometry"]}): {s["keyframes"]} keyframes of '
@@ -105,6 +111,8 @@ def lines(name: str, s: dict[str, Any]) -> list[str]:
         f'  revisit recall {recall}',
         f'  right refused  {sum(s["right_refused"].values())} of {s["right_poses"]} right '
         f'poses: {refused}; no common view {s.get("no_common_view", 0)}',
+        f'  wrong stopped  {sum(s["wrong_stopped"].values())} of {s["wrong_poses"]} wrong '
+        f'poses: {_by_reason(s["wrong_stopped"])}',
         f'  ATE            odometry {_m(s["ate_odometry_m"])}, corrected '
         f'{_m(s["ate_corrected_m"])}',
         f'  calibration    {_calibration(s)}',
@@ -112,6 +120,10 @@ def lines(name: str, s: dict[str, Any]) -> list[str]:
         f'{s["verify_p95_ms"]:.1f} ms per keyframe; {s["scans_per_s"]:.1f} scans/s '
         f'({s["wall_s"]:.1f} s)',
     ]
+
+
+def _by_reason(counts: dict[str, int]) -> str:
+    return ', '.join(f'{k} {v}' for k, v in counts.items()) or 'none'
 
 
 def _calibration(s: dict[str, Any]) -> str:
@@ -161,12 +173,14 @@ def main() -> int:
 
 
 COLUMNS = ['recording', 'preset', 'odometry', 'keyframes', 'loops', 'false', 'precision',
-           'revisit recall', 'right poses refused', 'refused by', 'ATE odometry / corrected',
+           'revisit recall', 'right poses refused', 'refused by', 'wrong poses stopped',
+           'stopped by', 'ATE odometry / corrected',
            'calibration', 'verify p50 / p95 ms', 'scans/s']
 NOTES = ('Loops are false when their pose is beyond 1 m / 3 deg of the reference relative '
          'pose. A right pose refused is a candidate whose (rejected) pose lies within that of '
-         'the reference. Calibration: right alignments of the run / pairs tried, the conflict '
-         'bar they set, the odometry drift measured per metre.')
+         'the reference; a wrong pose stopped is one beyond it that a test refused (named: '
+         'the first that failed). Calibration: right alignments of the run / pairs tried, the '
+         'conflict bar they set, the odometry drift measured per metre.')
 
 
 def _row(name: str, s: dict[str, Any]) -> list[Any]:
@@ -177,7 +191,9 @@ def _row(name: str, s: dict[str, Any]) -> list[Any]:
             '-' if s['precision'] is None else f'{s["precision"]:.3f}',
             f'{rv["found"]}/{rv["revisiting"]}' if rv['revisiting'] else 'no revisit',
             f'{refused}/{s["right_poses"]}',
-            ', '.join(f'{k} {v}' for k, v in s['right_refused'].items()) or '-',
+            _by_reason(s['right_refused']),
+            f'{sum(s["wrong_stopped"].values())}/{s["wrong_poses"]}',
+            _by_reason(s['wrong_stopped']),
             f'{_m(s["ate_odometry_m"])} / {_m(s["ate_corrected_m"])}',
             (f'{c["right"]}/{c["tried"]}, bar {s["max_conflict"]:.3f}, drift '
              f'{c["drift_per_m"]:.3f}/m') if c else '-',
