@@ -268,15 +268,16 @@ def _local_minima(cost: FloatArray) -> list[int]:
     A run of equal values lower than the values on both sides counts once, at its lowest
     index; ties in cost go to the lower index, so the first entry is ``argmin(cost)``.
     """
-    starts = np.flatnonzero(cost != np.roll(cost, 1)).tolist()
+    c = cost.tolist()  # Python floats: the scan below reads single values
+    starts = [i for i in range(len(c)) if c[i] != c[i - 1]]
     if not starts:  # flat curve: every shift is as good
         return [0]
     minima = []
     for k, i in enumerate(starts):
         j = starts[(k + 1) % len(starts)]  # the run is i .. j - 1, circularly
-        if cost[i - 1] > cost[i] and cost[j] > cost[i]:
+        if c[i - 1] > c[i] and c[j] > c[i]:
             minima.append(0 if j <= i and j != 0 else i)  # a run through index 0 starts at 0
-    minima.sort(key=lambda m: (float(cost[m]), m))
+    minima.sort(key=lambda m: (c[m], m))
     return minima
 
 
