@@ -16,7 +16,7 @@ Reason = Literal[
     # the judge's rules, in their order (and 'verified' when none refused)
     'verified', 'no_cloud', 'too_sparse', 'coarse_overlap', 'not_converged', 'overlap', 'rmse',
     'conflict', 'constraint', 'single_object', 'unstable', 'pinned', 'odometry',
-    'graph_heading', 'graph_position', 'graph_constraint',
+    'graph_heading', 'graph_position',
     # the detector
     'descriptor', 'best',
     # another robot's keyframe cloud did not come

@@ -46,9 +46,6 @@ KNOWN_PLACE_SHARE = 0.7
 # parked or gone, a door, furniture) puts a whole object into space the other scan saw
 # through, and whether the place is right the graph answered.
 KNOWN_PLACE_CONFLICT = 2.0
-# A candidate the graph proposed by position alone has no descriptor evidence: its alignment
-# must be this much better constrained than verify_min_constraint.
-GRAPH_CONSTRAINT_SHARE = 1.25
 # A loop is right within 1 m and 3 degrees: one whose own covariance puts two sigmas beyond
 # that in some direction is not pinned there (a sensor facing one wall leaves a roll free).
 PINNED_M = 1.0
@@ -83,7 +80,6 @@ class Bars:
     max_drift_deg_per_probe: float
     pinned_m: float
     pinned_deg: float
-    graph_min_constraint: float
     odom_slack_m: float = math.inf
     odom_drift_per_m: float = 0.0
 
@@ -103,8 +99,6 @@ def bars(config: SolidConfig, learned: Learned | None = None, step: bool = False
       the graph did not predict must show clearly less conflict than the bar.
     - ``max_drift_deg_per_probe``: ``verify_max_drift_deg`` per ``PROBE_DEG`` of restart turn.
     - ``pinned_m``, ``pinned_deg``: what a right loop is (``PINNED_M``, ``PINNED_DEG``).
-    - ``graph_min_constraint``: ``GRAPH_CONSTRAINT_SHARE`` of ``verify_min_constraint`` for a
-      candidate the graph proposed.
     - ``max_conflict``: ``verify_max_conflict``, or ``CONFLICT_OVER_RIGHT`` times the upper
       quartile of the conflict of the run's right alignments where that is more (a sensor or
       scene whose right poses show more conflict than the setting allows: mixed pixels,
@@ -146,7 +140,6 @@ def bars(config: SolidConfig, learned: Learned | None = None, step: bool = False
         max_drift_deg_per_probe=c.verify_max_drift_deg,
         pinned_m=PINNED_M,
         pinned_deg=PINNED_DEG,
-        graph_min_constraint=GRAPH_CONSTRAINT_SHARE * c.verify_min_constraint,
         odom_slack_m=slack if c.odom_check_drift > 0.0 else math.inf,
         odom_drift_per_m=drift,
     )
@@ -179,12 +172,6 @@ class Rule:
 
 def _flag(value: float) -> bool:
     return value == 1.0
-
-
-def _graph_constraint(m: Any, b: Bars) -> bool:
-    # The constraint that passed the constraint rule: the 10 m lever's, else the near one.
-    c = m.constraint if m.constraint >= b.min_constraint else m.constraint_near
-    return bool(not _flag(m.graph) or c >= b.graph_min_constraint)
 
 
 def _within(value: float, allowed: float) -> bool:
@@ -263,11 +250,6 @@ RULES: tuple[Rule, ...] = (
          lambda m, b: f'moves the view {m.graph_stray_m:.2f} m from the pose graph (allowed '
                       f'{m.graph_stray_allowed_m:.2f} m)',
          "the loop puts the query's view where the pose graph predicted it"),
-    Rule('graph_constraint', 'context',
-         ('graph', 'constraint', 'constraint_near'), _graph_constraint,
-         lambda m, b: f'a graph candidate needs constraint {b.graph_min_constraint:.4f}',
-         'a candidate the pose graph proposed is better constrained '
-         '(GRAPH_CONSTRAINT_SHARE of verify_min_constraint)'),
 )
 assert tuple(r.reason for r in RULES) == RULE_REASONS[1:], 'RULES and reasons.Reason differ'
 

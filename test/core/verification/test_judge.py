@@ -110,8 +110,8 @@ def test_context_rules_pass_where_nothing_was_measured_and_refuse_what_disagrees
     assert judge(far, BARS, 'context').reason == 'odometry'
     turned = Measures(graph_turn_deg=20.0, graph_turn_tol_deg=5.0)
     assert judge(turned, BARS, 'context').reason == 'graph_heading'
-    graph = Measures(graph=1.0, constraint=1.1 * CFG.verify_min_constraint)
-    assert judge(graph, BARS, 'context').reason == 'graph_constraint'
+    strayed = Measures(graph_stray_m=3.0, graph_stray_allowed_m=2.0)
+    assert judge(strayed, BARS, 'context').reason == 'graph_position'
 
 
 def test_what_the_run_learned_sets_the_conflict_bar_and_the_odometry_allowance() -> None:
