@@ -56,7 +56,7 @@ def test_bench_real_scores_a_real_recording(shared_data: Path, tmp_path: Path) -
 
 def test_bench_verify_writes_a_markdown_report(shared_data: Path, tmp_path: Path) -> None:
     # --no-cli: the solid_replay command itself is test/tools' (its two hku1 runs cost 40 s).
-    out = _bench('bench_verify.py', '--scans', '80', '--no-cpp', '--no-cli',
+    out = _bench('bench_verify.py', '--scans', '80', '--rounds', '2', '--no-cpp', '--no-cli',
                  '--report', str(tmp_path / 'verify.md'))
     assert 'hku1 replay (as shipped)' in out
     report = (tmp_path / 'verify.md').read_text()
