@@ -62,6 +62,8 @@ def test_bench_verify_writes_a_markdown_report(shared_data: Path, tmp_path: Path
     report = (tmp_path / 'verify.md').read_text()
     assert report.startswith('# bench_verify report')
     assert '| hku1 replay (as shipped) | avia.yaml | as shipped' in report
+    # The keyframes that can have loop candidates, apart (the first 30 only prepare).
+    assert '| hku1 replay (as shipped), keyframes 30 on | avia.yaml | as shipped, the' in report
 
 
 def test_bench_fleet_map_prints_joint_ate_and_false_loop_moves() -> None:
