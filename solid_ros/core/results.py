@@ -107,7 +107,6 @@ class Evidence:
         drift_m: largest translation of the two consistency restarts from the pose, metres.
         drift_deg: their largest rotation from it, degrees.
         drift_turn_deg: the turn they were started with, degrees.
-        second_minimum: a far restart found a better pose, which the rules then judged (1).
         pinned_m: two sigmas of the loop covariance's least pinned translation, metres.
         pinned_deg: two sigmas of its least pinned rotation, degrees.
         odom_error_m: how far the loop's translation is from the odometry's, metres.
@@ -135,7 +134,6 @@ class Evidence:
     drift_m: float = math.nan
     drift_deg: float = math.nan
     drift_turn_deg: float = math.nan
-    second_minimum: float = math.nan
     pinned_m: float = math.nan
     pinned_deg: float = math.nan
     odom_error_m: float = math.nan

@@ -38,8 +38,7 @@ MAX_M, MAX_DEG = 1.0, 3.0  # bench_real's right pose
 LOWER_PASSES = frozenset({'rmse', 'conflict', 'conflict_points', 'drift_m', 'drift_deg',
                           'pinned_m', 'pinned_deg', 'odom_error_m', 'graph_turn_deg',
                           'graph_stray_m'})
-FLAGS = frozenset({'cloud', 'usable', 'converged', 'known_place', 'graph', 'step',
-                   'second_minimum'})
+FLAGS = frozenset({'cloud', 'usable', 'converged', 'known_place', 'graph', 'step'})
 # What the place allows or how far the restarts turned: the bar itself, not a reading.
 ALLOWANCES = frozenset({'odom_allowed_m', 'graph_turn_tol_deg', 'graph_stray_allowed_m',
                         'drift_turn_deg'})

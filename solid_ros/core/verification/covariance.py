@@ -23,9 +23,9 @@ so residuals that vanish by chance do not make a loop certain. ``RESIDUAL_SCALE`
 with ``test/bench/bench_nees.py`` (README, Loop verification): mean NEES 3.4-9.5 on the
 simulator's drives and room walk against their exact reference (seed 0; 3.1-8.1 on seed 1),
 11.6 on hku1 against ``odom_poses.txt`` and 6.5 against an independent re-registration. It
-does not cover a second minimum (a slide along a street seen head-on that the verification's
-consistency test does not catch), nor errors outside the loop (a reference or odometry frame
-that is itself off): ``verify_covariance_scale`` scales it for the latter.
+does not cover a second minimum (a slide of 0.7-1.3 m along a street seen head-on or along
+shelves, which the consistency restarts do not catch), nor errors outside the loop (a reference
+or odometry frame that is itself off): ``verify_covariance_scale`` scales it for the latter.
 """
 
 from __future__ import annotations

@@ -102,11 +102,11 @@ def bars(config: SolidConfig, learned: Learned | None = None, step: bool = False
     - ``max_conflict``: ``verify_max_conflict``, or ``CONFLICT_OVER_RIGHT`` times the upper
       quartile of the conflict of the run's right alignments where that is more (a sensor or
       scene whose right poses show more conflict than the setting allows: mixed pixels,
-      porous vegetation, moving people). A registered step skips the single-object rule and
-      the search for a second minimum, so its bar rests on the pairs the odometry agreed with
-      only, not on those a triangle of registrations showed right: quickshack with KISS-ICP,
-      whose triangles set the bar from its 21st keyframe, put two steps 2.6-3 m off into the
-      graph (the sensor moved 5 cm; conflict 0.052 and 0.083) and a false loop followed.
+      porous vegetation, moving people). A registered step skips the single-object rule,
+      so its bar rests on the pairs the odometry agreed with only, not on those a triangle
+      of registrations showed right: quickshack with KISS-ICP, whose triangles set the bar
+      from its 21st keyframe, put two steps 2.6-3 m off into the graph (the sensor moved
+      5 cm; conflict 0.052 and 0.083) and a false loop followed.
     - ``odom_slack_m``, ``odom_drift_per_m``: the odometry check allows a floor plus a drift
       per metre of path: ``odom_check_drift`` until the run measured its odometry, then
       ``DRIFT_OVER_MEASURED`` times what it measured. The floor is ``odom_check_slack_m``

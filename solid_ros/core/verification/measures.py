@@ -75,12 +75,11 @@ class PoseMeasures(Measures):
         converged: whether the fine stage converged.
         step: a registered step to the previous keyframe, not a loop.
         place: what the detector knows of the place (None: nothing).
-        second_minimum: the pose is a far restart's better minimum.
     """
 
     def __init__(self, verifier: VerifierLike, query: Query, src: Source, T_qm: FloatArray,
                  coarse_overlap: float, converged: bool, step: bool = False,
-                 place: Place | None = None, second_minimum: bool = False) -> None:
+                 place: Place | None = None) -> None:
         self._verifier, self._query, self._src, self.T_qm = verifier, query, src, T_qm
         self._place = place
         self.cloud = self.usable = 1.0
@@ -88,8 +87,6 @@ class PoseMeasures(Measures):
         self.converged = 1.0 if converged else 0.0
         self.step = 1.0 if step else 0.0
         self.graph = 1.0 if place is not None and place.graph else 0.0
-        if second_minimum:
-            self.second_minimum = 1.0
 
     @cached_property
     def T_mq(self) -> FloatArray:

@@ -57,7 +57,6 @@ from solid_ros.core.verification.registration import (
     align_fine,
     settled,
 )
-from solid_ros.core.verification.restarts import second_minimum
 from solid_ros.core.verification.support import Support
 
 __all__ = ['TIGHT_GRID', 'CoarseResult', 'Verification', 'Verifier', 'registration_settings']
@@ -264,7 +263,7 @@ class Verifier:
         """Fine stage of a candidate that passed :meth:`coarse`, judged by the fine rules,
         then, on the pose it settled on, by the context rules (``place``: what the detector
         knows of the place; a ``step``, two consecutive keyframes started from the odometry,
-        skips the single-object rule and the search for a second minimum)."""
+        skips the single-object rule)."""
         if coarse.rejection is not None:
             return coarse.rejection
         assert coarse.source is not None and coarse.alignment is not None
@@ -275,12 +274,6 @@ class Verifier:
         m = PoseMeasures(self, query, src, fine.T_qm, co, fine.converged, step, place)
         limits = self.step_bars if step else self.bars
         verdict = judge(m, limits, 'fine')
-        if verdict.verified and not step:  # a step starts from the odometry: no street
-            other = second_minimum(query, src, fine.T_qm, m.support, self.settings.voxel,
-                                   self.config.verify_max_drift, self.config.verify_min_overlap)
-            if other is not None:
-                m = PoseMeasures(self, query, src, other, co, True, step, place, True)
-                verdict = judge(m, limits, 'fine')
         if verdict.verified:
             verdict = judge(m, limits, 'context')
         if not verdict.verified:

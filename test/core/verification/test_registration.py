@@ -75,7 +75,7 @@ def test_the_fine_stage_lands_within_a_centimetre_at_its_coarser_steps(
         dx: float, dy: float, yaw_deg: float) -> None:
     # Fine runs end at 5 mm steps (small_gicp's default is 1 mm): the pose they end at must
     # still be a centimetre from the right one, well inside a loop's covariance, when started
-    # as far off as the far restarts start (two voxels) with a turn.
+    # two voxels off with a turn (beyond the consistency restarts' one voxel).
     settings = RegistrationSettings()
     query = Query(_street(0.2), settings)
     source = Source(Query(_street(0.2), settings).keyframe_cloud(), settings)
