@@ -8,9 +8,8 @@ true alignment sits in a basin and is found again, a spurious one slides away.
 
 A second minimum along repeated structure (a street seen head-on, a row of shelves) 0.7-1.3 m
 from the right pose holds its one-voxel basin as well as the right pose does, and passes: the
-odometry check is the guard there. A search for it (restarts two voxels out, both ways) was
-dropped: on the three real recordings it replaced no pose in 402 searches and cost 9-12 % of
-a median keyframe's verification (doc/verification.md, What no rule catches).
+odometry check is the guard there (doc/verification.md, What no rule catches: why no search for
+it runs).
 """
 
 from __future__ import annotations
